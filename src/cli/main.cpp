@@ -1,16 +1,33 @@
-// motionctl: the command-line entry point; subcommands are thin wrappers.
+// motionctl: the command-line entry point. Subcommands are thin: parse, call, print.
+// Exit codes: 0 ok, 2 bad input (config, files, values), 1 internal error.
 #include <CLI/CLI.hpp>
 #include <iostream>
 
+#include "cli/commands.h"
 #include "core/error.h"
 
 int main(int argc, char** argv) {
-  CLI::App app{"motionctl: spatially controlled human motion generation"};
+  CLI::App app{"motionctl: spatially controlled human motion generation (ProjFlow, AnchorRoute)"};
   app.require_subcommand(1);
+  mc::add_fixture_command(app);
+  mc::add_train_command(app);
+  mc::add_sweep_command(app);
+  mc::add_config_command(app);
+  mc::add_bench_command(app);
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
-    return app.exit(e) == 0 ? 0 : mc::kExitUserError;
+    int code = app.exit(e);
+    return code == 0 ? 0 : mc::kExitUserError;
+  } catch (const mc::UserError& e) {
+    std::cerr << "motionctl: error: " << e.what() << "\n";
+    return mc::kExitUserError;
+  } catch (const c10::Error& e) {
+    std::cerr << "motionctl: internal torch error: " << e.what_without_backtrace() << "\n";
+    return 1;
+  } catch (const std::exception& e) {
+    std::cerr << "motionctl: internal error: " << e.what() << "\n";
+    return 1;
   }
   return 0;
 }

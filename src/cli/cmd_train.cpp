@@ -1,0 +1,129 @@
+// `motionctl train CONFIG [key=value ...]` and `motionctl sweep CONFIG key=a,b ...`.
+#include <filesystem>
+#include <iostream>
+
+#include "cli/commands.h"
+#include "cli/fixture_job.h"
+#include "cli/jobs.h"
+#include "core/atomic_file.h"
+#include "core/error.h"
+#include "data/skeleton.h"
+#include "train/trainer.h"
+
+namespace mc {
+namespace fs = std::filesystem;
+
+static std::string stem_of(const std::string& file) { return fs::path(file).stem().string(); }
+
+// Builds the training data from its fixture config when the file is missing.
+static void ensure_training_data(const TrainJobConfig& job) {
+  if (fs::exists(resolve_data_path(job.data.path))) return;
+  if (job.data.fixture.empty())
+    fail("data.path '{}' does not exist and data.fixture is empty; build it with `motionctl fixture` or point "
+         "data.path at a motion file",
+         job.data.path);
+  build_fixture(resolve_data_path(job.data.fixture), {fmt::format("output={}", job.data.path)}, false);
+}
+
+static TrainResult run_train(const std::string& file, const std::vector<std::string>& overrides, int64_t stop_after) {
+  auto job = load_job<TrainJobConfig>(file, overrides);
+  ensure_training_data(job);
+  std::string name = fmt::format("{}-{}", stem_of(file), config_hash(job));
+  return train(job, overrides, name, stop_after);
+}
+
+void add_train_command(CLI::App& app) {
+  auto* cmd = app.add_subcommand("train", "train a model from a YAML config (resumes; a finished run is a no-op)");
+  struct Args {
+    std::string file;
+    std::vector<std::string> overrides;
+    int64_t stop_after = 0;
+  };
+  auto a = std::make_shared<Args>();
+  cmd->add_option("config", a->file, "config file, e.g. configs/train/autoencoder_smoke.yaml")->required();
+  cmd->add_option("overrides", a->overrides, "key.path=value overrides (run.force=true redoes a finished run)");
+  cmd->add_option("--stop-after", a->stop_after, "stop after N steps without finishing (resume later)");
+  cmd->callback([a] {
+    TrainResult r = run_train(a->file, a->overrides, a->stop_after);
+    std::cout << "run: " << r.run_dir.string() << (r.skipped ? " (already finished)" : "") << "\n";
+    for (auto& [k, v] : r.summary) std::cout << fmt::format("  {} = {:.6g}\n", k, v);
+  });
+}
+
+void add_sweep_command(CLI::App& app) {
+  auto* cmd = app.add_subcommand("sweep", "train the grid of all value combinations, one run per combination");
+  struct Args {
+    std::string file;
+    std::vector<std::string> grid;
+    std::string summary;
+  };
+  auto a = std::make_shared<Args>();
+  cmd->add_option("config", a->file, "training config file")->required();
+  cmd->add_option("grid", a->grid, "key=v1,v2,... (a single value is a plain override)");
+  cmd->add_option("--summary", a->summary, "summary CSV path (default runs/<experiment>/sweep-<config>.csv)");
+  cmd->callback([a] {
+    // Expand the grid: every key=v1,v2 becomes one axis.
+    std::vector<std::pair<std::string, std::vector<std::string>>> axes;
+    for (auto& g : a->grid) {
+      auto eq = g.find('=');
+      if (eq == std::string::npos || eq == 0) fail("sweep argument '{}' must look like key=v1,v2", g);
+      std::string key = g.substr(0, eq), vals = g.substr(eq + 1);
+      std::vector<std::string> values;
+      if (!vals.empty() && vals[0] == '[') {
+        values.push_back(vals);  // a list literal is one value
+      } else {
+        std::stringstream ss(vals);
+        for (std::string v; std::getline(ss, v, ',');) values.push_back(v);
+      }
+      if (values.empty()) fail("sweep argument '{}' has no values", g);
+      axes.emplace_back(key, values);
+    }
+    std::vector<std::vector<std::string>> combos{{}};
+    for (auto& [key, values] : axes) {
+      std::vector<std::vector<std::string>> next;
+      for (auto& c : combos)
+        for (auto& v : values) {
+          auto n = c;
+          n.push_back(key + "=" + v);
+          next.push_back(n);
+        }
+      combos = next;
+    }
+    auto base = load_job<TrainJobConfig>(a->file, {});
+    std::vector<std::map<std::string, double>> rows;
+    std::set<std::string> metric_names;
+    for (size_t i = 0; i < combos.size(); ++i) {
+      auto overrides = combos[i];
+      std::string tag;
+      for (size_t k = 0; k < overrides.size(); ++k)
+        if (axes[k].second.size() > 1) tag += (tag.empty() ? "" : ",") + overrides[k];
+      std::string run_name = fmt::format("{}-{}", stem_of(a->file), tag.empty() ? "base" : tag);
+      overrides.push_back("run.name=" + sanitize_name(run_name));
+      std::cout << fmt::format("[{}/{}] {}\n", i + 1, combos.size(), fmt::join(combos[i], " ")) << std::flush;
+      TrainResult r = run_train(a->file, overrides, 0);
+      std::cout << "  run: " << r.run_dir.string() << (r.skipped ? " (already finished)" : "") << "\n";
+      rows.push_back(r.summary);
+      for (auto& [k, _] : r.summary) metric_names.insert(k);
+    }
+    std::string csv = "run";
+    for (auto& [key, _] : axes) csv += "," + key;
+    for (auto& m : metric_names) csv += "," + m;
+    csv += "\n";
+    for (size_t i = 0; i < combos.size(); ++i) {
+      std::string line = fmt::format("{}", i);
+      for (auto& kv : combos[i]) line += "," + kv.substr(kv.find('=') + 1);
+      for (auto& m : metric_names) {
+        auto it = rows[i].find(m);
+        line += it == rows[i].end() ? "," : fmt::format(",{:.8g}", it->second);
+      }
+      csv += line + "\n";
+    }
+    fs::path out = a->summary.empty()
+                       ? fs::path(base.run.root) / sanitize_name(base.run.experiment) / ("sweep-" + stem_of(a->file) + ".csv")
+                       : fs::path(a->summary);
+    write_file_atomic(out, csv);
+    std::cout << "summary: " << out.string() << "\n";
+  });
+}
+
+}  // namespace mc

@@ -1,0 +1,11 @@
+// Subcommand registration: one function per `motionctl <command>`.
+#pragma once
+#include <CLI/CLI.hpp>
+
+namespace mc {
+void add_fixture_command(CLI::App& app);
+void add_train_command(CLI::App& app);
+void add_sweep_command(CLI::App& app);
+void add_config_command(CLI::App& app);
+void add_bench_command(CLI::App& app);
+}  // namespace mc

@@ -1,0 +1,52 @@
+// The plug-in point of the generic training loop: every trainable model (flow
+// prior, tokenizer, TMD, adapters, evaluator, autoencoder) implements Trainable
+// and registers under its `model.type`.
+#pragma once
+#include <functional>
+#include <map>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "core/config.h"
+#include "core/run_dir.h"
+#include "train/motion_dataset.h"
+
+namespace mc {
+
+struct LossOutput {
+  torch::Tensor loss;                                        // scalar to minimise
+  std::vector<std::pair<std::string, torch::Tensor>> parts;  // logged scalars (detached)
+};
+
+struct TrainContext {
+  std::shared_ptr<MotionDataset> data;
+  torch::Device device = torch::kCPU;
+  const Config* job = nullptr;  // the whole job config, for models that need other sections
+  int window = 0;
+};
+
+class Trainable {
+ public:
+  virtual ~Trainable() = default;
+  virtual torch::nn::Module& module() = 0;
+  // Parameters the optimiser updates (adapters return only theirs; the rest is frozen).
+  virtual std::vector<torch::Tensor> trainable_parameters() { return module().parameters(); }
+  virtual LossOutput loss(const std::vector<int64_t>& batch_indices) = 0;
+  // Metrics of the final (EMA) weights, e.g. validation reconstruction error.
+  virtual std::map<std::string, double> evaluate() { return {}; }
+};
+
+using TrainableFactory = std::function<std::unique_ptr<Trainable>(const Config& model_cfg, const TrainContext& ctx)>;
+void register_trainable(const std::string& type, TrainableFactory make);
+std::unique_ptr<Trainable> make_trainable(const Component& model, const TrainContext& ctx);
+
+// Registers a model's config struct (family "model") and its trainable factory in one place.
+#define MC_REGISTER_MODEL(TYPE, CONFIG, FACTORY, HELP)                                        \
+  static const bool mc_model_registered_##CONFIG = [] {                                      \
+    ::mc::register_component("model", TYPE, [] { return std::make_shared<CONFIG>(); }, HELP); \
+    ::mc::register_trainable(TYPE, FACTORY);                                                  \
+    return true;                                                                              \
+  }()
+
+}  // namespace mc

@@ -1,0 +1,80 @@
+// The generic training loop: AdamW, warm-up/decay schedule as a pure function of
+// the step, EMA, gradient clipping, logging, atomic checkpoints and exact resume.
+#pragma once
+#include <map>
+#include <string>
+
+#include "core/config.h"
+#include "core/run_dir.h"
+#include "train/motion_dataset.h"
+#include "train/trainable.h"
+
+namespace mc {
+
+struct OptimConfig : Config {
+  int steps = 1000;
+  int batch_size = 64;
+  double lr = 2e-4;
+  std::vector<double> betas = {0.9, 0.99};
+  double weight_decay = 1e-5;
+  int warmup = 100;
+  std::string schedule = "step";  // constant | step | cosine
+  std::vector<int> decay_at = {};
+  double decay_factor = 0.1;
+  double min_lr_ratio = 0.0;
+  double grad_clip = 1.0;
+  double ema_decay = 0.999;
+  void visit(FieldVisitor& v) override {
+    v("steps", steps, "optimiser steps", at_least(1));
+    v("batch_size", batch_size, "clips per step", at_least(1));
+    v("lr", lr, "peak learning rate", positive<double>());
+    v("betas", betas, "AdamW betas", each(in_range(0.0, 0.999999)));
+    v("weight_decay", weight_decay, "AdamW decoupled weight decay", at_least(0.0));
+    v("warmup", warmup, "linear warm-up steps from 0 to lr", at_least(0));
+    v("schedule", schedule, "after warm-up: constant, step (x decay_factor at each decay_at) or cosine",
+      one_of({"constant", "step", "cosine"}));
+    v("decay_at", decay_at, "steps where the step schedule multiplies lr by decay_factor", each(at_least(0)));
+    v("decay_factor", decay_factor, "step-schedule multiplier", in_range(0.0, 1.0));
+    v("min_lr_ratio", min_lr_ratio, "cosine floor as a fraction of lr", in_range(0.0, 1.0));
+    v("grad_clip", grad_clip, "max global gradient L2 norm (0 = off)", at_least(0.0));
+    v("ema_decay", ema_decay, "EMA decay of the weights (0 = no EMA)", in_range(0.0, 1.0));
+  }
+  std::string validate() const override {
+    if (betas.size() != 2) return "optim.betas needs two numbers, e.g. [0.9, 0.99]";
+    return "";
+  }
+};
+
+// Learning rate at `step` (0-based): a pure function so resume needs no state.
+double scheduled_lr(const OptimConfig& o, int64_t step);
+
+// What `motionctl train` parses: run, data, model (by type) and optimiser.
+struct TrainJobConfig : Config {
+  RunConfig run;
+  DataConfig data;
+  Component model{"model"};
+  OptimConfig optim;
+  void visit(FieldVisitor& v) override {
+    v("run", run, "run directory, seed, threads, device");
+    v("data", data, "training data");
+    v("model", model, "the model to train (picked by type)");
+    v("optim", optim, "optimiser and schedule");
+  }
+};
+
+struct TrainResult {
+  fs::path run_dir;
+  bool skipped = false;  // finished earlier; nothing done
+  std::map<std::string, double> summary;
+};
+
+// Applies run.threads/device/seed; returns the device.
+torch::Device setup_torch(const RunConfig& run);
+
+// Trains (or resumes, or skips) the run described by `job`. `default_name` names
+// the run directory when run.name is empty. `stop_after` > 0 stops (without
+// finishing) after that many steps of this invocation: used by tests of resume.
+TrainResult train(TrainJobConfig& job, const std::vector<std::string>& overrides, const std::string& default_name,
+                  int64_t stop_after = 0);
+
+}  // namespace mc
