@@ -19,6 +19,7 @@
 #include <memory>
 #include <set>
 #include <string>
+#include <type_traits>
 #include <vector>
 
 #include <fmt/format.h>
@@ -130,11 +131,15 @@ class FieldVisitor {
   virtual void component(const char* name, Component& c, const char* help) = 0;
 
   template <class T>
-  void operator()(const char* name, T& v, const char* help, const Check<T>& c = {}) {
+  void operator()(const char* name, T& v, const char* help) {
+    if constexpr (std::is_base_of_v<Config, T>) section(name, v, help);
+    else if constexpr (std::is_same_v<T, Component>) component(name, v, help);
+    else field(name, v, help, Check<T>{});
+  }
+  template <class T>
+  void operator()(const char* name, T& v, const char* help, const Check<T>& c) {
     field(name, v, help, c);
   }
-  void operator()(const char* name, Config& c, const char* help) { section(name, c, help); }
-  void operator()(const char* name, Component& c, const char* help) { component(name, c, help); }
 };
 
 // A composed YAML tree plus, for every leaf path, the file or override that set it.

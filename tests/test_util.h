@@ -1,0 +1,55 @@
+// Shared helpers for tests: temp dirs, running the motionctl binary.
+#pragma once
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <cstdlib>
+#include <filesystem>
+#include <fstream>
+#include <sstream>
+#include <string>
+
+#include <fmt/format.h>
+
+namespace mc::test {
+
+namespace fs = std::filesystem;
+
+struct TempDir {
+  fs::path path;
+  explicit TempDir(const std::string& tag = "t") {
+    path = fs::temp_directory_path() / fmt::format("mc_{}_{}_{}", tag, ::getpid(), std::rand());
+    fs::create_directories(path);
+  }
+  ~TempDir() {
+    std::error_code ec;
+    fs::remove_all(path, ec);
+  }
+};
+
+struct CommandResult {
+  int exit_code = -1;
+  std::string output;  // stdout + stderr
+};
+
+// Runs `motionctl <args>` from the source tree; captures output and exit code.
+inline CommandResult run_motionctl(const std::string& args) {
+  std::string cmd = fmt::format("cd '{}' && CI=1 '{}' {} 2>&1", MOTIONCTL_SOURCE_DIR, MOTIONCTL_BINARY, args);
+  CommandResult r;
+  FILE* p = ::popen(cmd.c_str(), "r");
+  char buf[4096];
+  size_t n;
+  while ((n = fread(buf, 1, sizeof buf, p)) > 0) r.output.append(buf, n);
+  int status = ::pclose(p);
+  r.exit_code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+  return r;
+}
+
+inline std::string slurp(const fs::path& p) {
+  std::ifstream f(p);
+  std::stringstream ss;
+  ss << f.rdbuf();
+  return ss.str();
+}
+
+}  // namespace mc::test

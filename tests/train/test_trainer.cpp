@@ -1,0 +1,164 @@
+// Training loop: schedule as a pure function, end-to-end training of the motion
+// autoencoder, kill -9 + resume reproducing the uninterrupted metrics exactly,
+// finished runs as no-ops, sweeps.
+#include <catch2/catch.hpp>
+
+#include <signal.h>
+#include <sys/wait.h>
+
+#include <chrono>
+#include <thread>
+
+#include "test_util.h"
+#include "train/trainer.h"
+
+using namespace mc;
+using namespace mc::test;
+
+TEST_CASE("learning-rate schedule: warm-up, step decay, cosine", "[train]") {
+  OptimConfig o;
+  o.lr = 1.0;
+  o.steps = 100;
+  o.warmup = 10;
+  o.schedule = "step";
+  o.decay_at = {50, 80};
+  o.decay_factor = 0.1;
+  CHECK(scheduled_lr(o, 0) == Approx(0.1));
+  CHECK(scheduled_lr(o, 9) == Approx(1.0));
+  CHECK(scheduled_lr(o, 49) == Approx(1.0));
+  CHECK(scheduled_lr(o, 50) == Approx(0.1));
+  CHECK(scheduled_lr(o, 85) == Approx(0.01));
+  o.schedule = "cosine";
+  o.min_lr_ratio = 0.2;
+  CHECK(scheduled_lr(o, 10) == Approx(1.0));
+  CHECK(scheduled_lr(o, 100) == Approx(0.2));
+  CHECK(scheduled_lr(o, 55) == Approx(0.6));
+  for (int s = 11; s < 100; ++s) CHECK(scheduled_lr(o, s) <= scheduled_lr(o, s - 1) + 1e-12);
+  o.schedule = "constant";
+  CHECK(scheduled_lr(o, 99) == Approx(1.0));
+}
+
+namespace {
+
+// metrics.csv without the wall_time column (the only column allowed to differ).
+std::string metrics_without_wall(const fs::path& p) {
+  std::stringstream in(slurp(p)), out;
+  std::string line;
+  int wall_col = -1;
+  bool header = true;
+  while (std::getline(in, line)) {
+    std::stringstream ls(line);
+    std::string cell;
+    int col = 0;
+    std::string kept;
+    while (std::getline(ls, cell, ',')) {
+      if (header && cell == "wall_time") wall_col = col;
+      if (col != wall_col) kept += cell + ",";
+      ++col;
+    }
+    header = false;
+    out << kept << "\n";
+  }
+  return out.str();
+}
+
+}  // namespace
+
+TEST_CASE("kill -9 mid-training then resume reproduces the uninterrupted metrics.csv", "[train][slow]") {
+  TempDir t("resume");
+  std::string data = (t.path / "fx.h5").string();
+  auto fx = run_motionctl(fmt::format("fixture configs/data/smoke.yaml output={} fixture.num_clips=60", data));
+  REQUIRE(fx.exit_code == 0);
+  std::string common = fmt::format(
+      "configs/train/autoencoder_smoke.yaml data.path={} optim.steps=300 run.log_every=5 run.checkpoint_every=10 "
+      "run.threads=1 run.name=r model.width=32",
+      data);
+  auto a = run_motionctl(fmt::format("train {} run.root={}", common, (t.path / "a").string()));
+  REQUIRE(a.exit_code == 0);
+  fs::path run_a = t.path / "a" / "autoencoder" / "r";
+  REQUIRE(fs::exists(run_a / "DONE"));
+
+  // Interrupted run: start it, kill -9 once a checkpoint exists, then resume.
+  fs::path run_b = t.path / "b" / "autoencoder" / "r";
+  std::string cmd = fmt::format("cd '{}' && exec env CI=1 '{}' train {} run.root={} > /dev/null 2>&1",
+                                MOTIONCTL_SOURCE_DIR, MOTIONCTL_BINARY, common, (t.path / "b").string());
+  pid_t pid = ::fork();
+  if (pid == 0) {
+    ::execl("/bin/sh", "sh", "-c", cmd.c_str(), (char*)nullptr);
+    ::_exit(127);
+  }
+  auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(120);
+  while (!fs::exists(run_b / "checkpoints" / "last.pt") && std::chrono::steady_clock::now() < deadline)
+    std::this_thread::sleep_for(std::chrono::milliseconds(5));
+  std::this_thread::sleep_for(std::chrono::milliseconds(30));  // land between checkpoints
+  ::kill(pid, SIGKILL);
+  int status = 0;
+  ::waitpid(pid, &status, 0);
+  REQUIRE(WIFSIGNALED(status));
+  REQUIRE_FALSE(fs::exists(run_b / "DONE"));
+  auto b = run_motionctl(fmt::format("train {} run.root={}", common, (t.path / "b").string()));
+  REQUIRE(b.exit_code == 0);
+  CHECK(b.output.find("resuming") != std::string::npos);
+  CHECK(metrics_without_wall(run_a / "metrics.csv") == metrics_without_wall(run_b / "metrics.csv"));
+  CHECK(slurp(run_a / "summary.csv").find("val_mpjpe_m") != std::string::npos);
+
+  // A finished run is a no-op; a different config in the same run dir is refused.
+  auto again = run_motionctl(fmt::format("train {} run.root={}", common, (t.path / "a").string()));
+  CHECK(again.exit_code == 0);
+  CHECK(again.output.find("already finished") != std::string::npos);
+  auto clash = run_motionctl(fmt::format("train {} run.root={} optim.lr=0.5", common, (t.path / "a").string()));
+  CHECK(clash.exit_code == 2);
+  CHECK(clash.output.find("different config") != std::string::npos);
+}
+
+TEST_CASE("training reduces the autoencoder loss and the run directory is complete", "[train]") {
+  TempDir t("ae");
+  std::string data = (t.path / "fx.h5").string();
+  REQUIRE(run_motionctl(fmt::format("fixture configs/data/smoke.yaml output={} fixture.num_clips=60", data)).exit_code ==
+          0);
+  auto r = run_motionctl(fmt::format(
+      "train configs/train/autoencoder_smoke.yaml data.path={} optim.steps=120 run.log_every=10 "
+      "run.checkpoint_every=60 run.root={} run.name=ae run.seed=3",
+      data, t.path.string()));
+  REQUIRE(r.exit_code == 0);
+  fs::path run = t.path / "autoencoder" / "ae";
+  for (auto f : {"config.yaml", "overrides.txt", "seed.txt", "log.txt", "metrics.csv", "summary.csv", "DONE",
+                 "checkpoints/last.pt", "checkpoints/final.pt"})
+    CHECK(fs::exists(run / f));
+  CHECK(slurp(run / "seed.txt") == "3\n");
+  std::stringstream m(slurp(run / "metrics.csv"));
+  std::string header, first, line, last;
+  std::getline(m, header);
+  std::getline(m, first);
+  while (std::getline(m, line))
+    if (!line.empty()) last = line;
+  auto loss_at = [&](const std::string& row) {
+    std::stringstream hs(header), rs(row);
+    std::string h, v;
+    while (std::getline(hs, h, ',') && std::getline(rs, v, ','))
+      if (h == "loss") return std::stod(v);
+    return -1.0;
+  };
+  CHECK(loss_at(last) < 0.5 * loss_at(first));
+}
+
+TEST_CASE("sweep runs every combination once and writes a summary", "[train][slow]") {
+  TempDir t("sweep");
+  std::string data = (t.path / "fx.h5").string();
+  REQUIRE(run_motionctl(fmt::format("fixture configs/data/smoke.yaml output={} fixture.num_clips=50", data)).exit_code ==
+          0);
+  std::string args = fmt::format(
+      "sweep configs/train/autoencoder_smoke.yaml data.path={} optim.steps=10 run.log_every=5 run.checkpoint_every=5 "
+      "run.root={} model.width=16,24 optim.lr=0.001,0.002 --summary {}",
+      data, t.path.string(), (t.path / "summary.csv").string());
+  auto r = run_motionctl(args);
+  REQUIRE(r.exit_code == 0);
+  std::string csv = slurp(t.path / "summary.csv");
+  CHECK(std::count(csv.begin(), csv.end(), '\n') == 5);  // header + 4 runs
+  CHECK(csv.find("model.width,optim.lr") != std::string::npos);
+  auto again = run_motionctl(args);
+  REQUIRE(again.exit_code == 0);
+  size_t skipped = 0;
+  for (size_t p = 0; (p = again.output.find("already finished", p)) != std::string::npos; ++p) ++skipped;
+  CHECK(skipped == 4);
+}
