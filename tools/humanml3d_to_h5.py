@@ -6,7 +6,6 @@ import argparse
 import datetime
 import math
 import os
-import re
 import shlex
 import sys
 
@@ -71,11 +70,6 @@ def read_captions(path):
             if caption:
                 spans.setdefault((start, end), []).append(caption)
     return spans
-
-
-def words(text):
-    # "Split on non-letters": digits, punctuation and '_' separate words.
-    return re.findall(r"[^\W\d_]+", text.lower())
 
 
 def load_joints(path, num_joints):
@@ -180,7 +174,7 @@ def collect_clips(args, skeleton):
                     train_sumsq += (frames * frames).sum(axis=0)
                     train_count += frames.shape[0]
                     for cap in c["captions"]:
-                        train_words.update(words(cap))
+                        train_words.update(motionio.caption_words(cap))
 
     stats = vocab = None
     if train_count:

@@ -685,6 +685,11 @@ def write_motion(path: str, joints, lengths, ids, split, captions, skeleton: Opt
                               "and is writable") from None
 
 
+def caption_words(text: str) -> List[str]:
+    """Lowercase words of a caption; anything that is not a letter separates words."""
+    return re.findall(r"[^\W\d_]+", text.lower())
+
+
 def fail(message: str) -> "NoReturn":  # noqa: F821
     """Exit code 2 with a message on stderr: the tools' contract for bad input."""
     print(f"error: {message}", file=sys.stderr)
