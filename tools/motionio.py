@@ -91,7 +91,7 @@ def skeleton_to_yaml(skel: dict) -> str:
 
 
 def make_skeleton(name, names, parents, rest_directions, bone_lengths, chains=None, roles=None,
-                  yaml_text=None) -> dict:
+                  yaml_text=None, source=None) -> dict:
     """A skeleton dict as read_motion returns it; validated, YAML text generated if not given."""
     skel = {
         "name": str(name),
@@ -103,7 +103,7 @@ def make_skeleton(name, names, parents, rest_directions, bone_lengths, chains=No
         "roles": {str(k): list(map(int, v)) for k, v in (roles or {}).items()},
     }
     skel["yaml"] = yaml_text if yaml_text is not None else skeleton_to_yaml(skel)
-    validate_skeleton(skel, "skeleton " + str(name))
+    validate_skeleton(skel, source or "skeleton " + str(name))
     return skel
 
 
@@ -349,7 +349,7 @@ def skeleton_from_yaml_text(text: str, where: str) -> dict:
     if not isinstance(roles, dict) or not all(isinstance(v, list) for v in roles.values()):
         raise MotionFileError(f"{where}: key 'roles' must map role names to joint-index lists")
     return make_skeleton(doc.get("name") or "unnamed", names, parents, dirs, lengths, chains, roles,
-                         yaml_text=text)
+                         yaml_text=text, source=where)
 
 
 def load_skeleton_yaml(path: str) -> dict:
@@ -537,7 +537,8 @@ def _read_skeleton(f, path) -> dict:
         if from_yaml["names"] != names or not np.array_equal(from_yaml["parents"], parents):
             raise MotionFileError(f"{path}: skeleton attr 'yaml' disagrees with skeleton/names or "
                                   "skeleton/parents")
-    return make_skeleton(name, names, parents, dirs, lengths, chains, roles, yaml_text=yaml_text)
+    return make_skeleton(name, names, parents, dirs, lengths, chains, roles, yaml_text=yaml_text,
+                         source=f"{path}: skeleton")
 
 
 def _tmp_sibling(path: str, suffix: str = "") -> str:
