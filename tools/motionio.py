@@ -421,11 +421,30 @@ def _read_array(f, key, path, ndim, shape=None, kind="f"):
     return ds[()]
 
 
-def _attr_str(attrs, key):
-    v = attrs.get(key)
-    if isinstance(v, bytes):
-        v = v.decode("utf-8")
+def _attr_value(v):
+    # Other HDF5 writers may store a scalar as a 1-element array or a
+    # fixed-length byte string; read all of them as the plain value.
+    if isinstance(v, np.ndarray) and v.size == 1:
+        v = v.reshape(-1)[0]
+    if isinstance(v, (bytes, np.bytes_)):
+        v = bytes(v).decode("utf-8")
+    elif isinstance(v, np.integer):
+        v = int(v)
+    elif isinstance(v, np.floating):
+        v = float(v)
     return v
+
+
+def _attr_str(attrs, key):
+    v = _attr_value(attrs.get(key))
+    return v if v is None or isinstance(v, str) else str(v)
+
+
+def _attr_number(attrs, key):
+    v = _attr_value(attrs.get(key))
+    if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v):
+        return v
+    return None
 
 
 def read_motion(path: str) -> Motion:
@@ -442,12 +461,13 @@ def read_motion(path: str) -> Motion:
         if fmt != FORMAT_NAME:
             raise MotionFileError(f"{path}: attribute 'format' is {fmt!r}, expected '{FORMAT_NAME}'; "
                                   "this HDF5 file is not a motion file")
-        version = f.attrs.get("format_version")
-        if version is None or int(version) != FORMAT_VERSION:
-            raise MotionFileError(f"{path}: attribute 'format_version' is {version!r}, this reader "
+        version = _attr_number(f.attrs, "format_version")
+        if version != FORMAT_VERSION:
+            raise MotionFileError(f"{path}: attribute 'format_version' is "
+                                  f"{_attr_value(f.attrs.get('format_version'))!r}, this reader "
                                   f"understands version {FORMAT_VERSION}")
-        fps = f.attrs.get("fps")
-        if fps is None or not np.isscalar(fps) or not math.isfinite(float(fps)) or float(fps) <= 0:
+        fps = _attr_number(f.attrs, "fps")
+        if fps is None or fps <= 0:
             raise MotionFileError(f"{path}: attribute 'fps' is missing or not a positive number")
 
         skel = _read_skeleton(f, path)
@@ -494,8 +514,7 @@ def read_motion(path: str) -> Motion:
         provenance = {}
         if "provenance" in f:
             for k, v in f["provenance"].attrs.items():
-                provenance[k] = v.decode("utf-8") if isinstance(v, bytes) else (
-                    int(v) if isinstance(v, np.integer) else v)
+                provenance[k] = _attr_value(v)
 
         stats = None
         if "stats" in f:
@@ -530,11 +549,18 @@ def _read_skeleton(f, path) -> dict:
     yaml_text = _attr_str(g.attrs, "yaml") or ""
     chains, roles = [], {}
     if yaml_text:
-        # Chains and roles live only in the YAML text; a mismatch with the
-        # datasets would mean two skeletons in one file, so it is an error.
-        from_yaml = skeleton_from_yaml_text(yaml_text, f"{path}: skeleton attr 'yaml'")
-        chains, roles = from_yaml["chains"], from_yaml["roles"]
-        if from_yaml["names"] != names or not np.array_equal(from_yaml["parents"], parents):
+        # Chains and roles live only in the YAML text. This parser knows a YAML
+        # subset only, so text it cannot read costs the roles, not the file; a
+        # readable text that disagrees with the datasets is a broken file.
+        try:
+            from_yaml = skeleton_from_yaml_text(yaml_text, f"{path}: skeleton attr 'yaml'")
+        except MotionFileError as e:
+            print(f"warning: {e}; chains and roles are unavailable", file=sys.stderr)
+            from_yaml = None
+        if from_yaml is not None:
+            chains, roles = from_yaml["chains"], from_yaml["roles"]
+        if from_yaml is not None and (from_yaml["names"] != names or
+                                      not np.array_equal(from_yaml["parents"], parents)):
             raise MotionFileError(f"{path}: skeleton attr 'yaml' disagrees with skeleton/names or "
                                   "skeleton/parents")
     return make_skeleton(name, names, parents, dirs, lengths, chains, roles, yaml_text=yaml_text,

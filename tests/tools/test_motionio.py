@@ -152,6 +152,20 @@ class Validation(unittest.TestCase):
     def test_wrong_count(self):
         self.broken(lambda f: self.replace(f, "split", ["train", "val"], dtype=motionio.STR_DTYPE), "'split'")
 
+    def test_other_writers_scalar_styles_accepted(self):
+        # C++ HDF5 wrappers may write scalars as 1-element arrays or fixed-length strings.
+        with h5py.File(self.path, "a") as f:
+            f.attrs["fps"] = np.array([25.0])
+            f.attrs["format_version"] = np.array([1], np.int32)
+            f.attrs["format"] = np.bytes_(b"motionctl.motion")
+            f["provenance"].attrs["seed"] = np.array([7], np.int64)
+        m = motionio.read_motion(self.path)
+        self.assertEqual((m.fps, m.provenance["seed"]), (25.0, 7))
+
+    def test_yaml_attr_disagreeing_with_datasets(self):
+        other = motionio.humanml3d_skeleton()["yaml"].replace("l_hip", "left_hip")
+        self.broken(lambda f: f["skeleton"].attrs.__setitem__("yaml", other), "yaml")
+
     def test_not_hdf5_and_missing(self):
         with open(self.path, "w") as f:
             f.write("not hdf5")
