@@ -6,7 +6,7 @@ import math
 import os
 import re
 import sys
-from typing import Dict, Iterable, List, Optional
+from typing import Dict, Iterable, List, NoReturn, Optional
 
 import numpy as np
 import h5py
@@ -717,7 +717,7 @@ def caption_words(text: str) -> List[str]:
     return re.findall(r"[^\W\d_]+", text.lower())
 
 
-def fail(message: str) -> "NoReturn":  # noqa: F821
+def fail(message: str) -> NoReturn:
     """Exit code 2 with a message on stderr: the tools' contract for bad input."""
     print(f"error: {message}", file=sys.stderr)
     sys.exit(2)

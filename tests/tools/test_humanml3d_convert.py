@@ -11,7 +11,7 @@ import unittest
 
 try:
     import numpy as np
-    import h5py  # noqa: F401
+    import h5py  # noqa: F401  (the tools need it; skip early if absent)
 except ImportError as e:  # wrong interpreter: tell ctest "skipped", not "failed"
     print(f"skipping: {e} (run with /usr/bin/python3)")
     sys.exit(77)
