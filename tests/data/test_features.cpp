@@ -311,9 +311,9 @@ TEST_CASE("mc67 on the real HumanML3D clip matches its rotation-invariant parts"
   REQUIRE(vs == std::vector<size_t>{170, 263});
   const int T = 170;
   auto f = mc67_features(joints.data(), T, skel());
-  // HumanML3D's own facing frame cannot be recomputed from new_joints (it differs
-  // from the hip/shoulder facing by up to ~0.3 rad on this clip), so compare what
-  // does not depend on it: root height, root speed, joint heights and distances
+  // HumanML3D's own facing frame cannot be recomputed from new_joints (on this clip
+  // it departs from the raw and the smoothed hip/shoulder facing by 0.4-0.7 rad),
+  // so compare what does not depend on it: root height, root speed, joint heights and distances
   // from the root axis.
   double worst = 0;
   for (int t = 0; t < T - 1; ++t) {
