@@ -15,7 +15,7 @@ struct Provenance {
   std::string version;    // generator version
   int64_t seed = 0;
   std::string config;     // resolved config YAML text
-  std::string created;    // ISO-8601 UTC; excluded from determinism checks? no: fixed by caller for byte-identity
+  std::string created;    // ISO-8601 UTC; the only time in the file: callers wanting byte-identical files fix it
 };
 
 // Normalisation statistics from the train split.
@@ -49,7 +49,10 @@ struct MotionSet {
   const float* at(size_t i, int t, int j) const { return clip(i) + (static_cast<size_t>(t) * num_joints() + j) * 3; }
   std::vector<size_t> indices_of_split(const std::string& split) const;
   MotionSet subset(const std::vector<size_t>& idx) const;  // same skeleton/fps/t_max/stats/vocab
-  void check(const std::string& source) const;  // shapes, finiteness, lengths in range; UserError naming source
+  // Shapes, finiteness, lengths in range, zero padding, unique ids, one caption or
+  // more per clip, valid splits and stats; UserError naming `source` and the field.
+  void check(const std::string& source) const;
+  void clear_padding();  // zero the frames >= lengths[i] (the file format requires it)
 };
 
 void write_motion_file(const std::string& path, const MotionSet& m);  // atomic
