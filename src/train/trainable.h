@@ -35,6 +35,9 @@ class Trainable {
   virtual LossOutput loss(const std::vector<int64_t>& batch_indices) = 0;
   // Metrics of the final (EMA) weights, e.g. validation reconstruction error.
   virtual std::map<std::string, double> evaluate() { return {}; }
+  // Files a later user of the trained model needs besides the weights (e.g. a
+  // vocabulary), written into the run directory's outputs/ when training ends.
+  virtual void save_artifacts(const fs::path& outputs_dir) { (void)outputs_dir; }
 };
 
 using TrainableFactory = std::function<std::unique_ptr<Trainable>(const Config& model_cfg, const TrainContext& ctx)>;

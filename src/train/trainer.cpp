@@ -296,6 +296,7 @@ TrainResult train(TrainJobConfig& job, const std::vector<std::string>& overrides
     ar.save_to(out.tmp_path().string());
     out.commit();
   }
+  trainable->save_artifacts(run.outputs());
   for (auto& [k, v] : summary) run.log().info(fmt::format("  {} = {:.6g}", k, v));
   run.mark_finished(summary);
   result.summary = summary;

@@ -1,0 +1,327 @@
+// T2M-style evaluator: networks, contrastive training objective (registered as
+// model type `t2m_evaluator`) and the loader that embeds texts and motions.
+#include "eval/t2m_evaluator.h"
+
+#include <yaml-cpp/yaml.h>
+
+#include <filesystem>
+#include <fstream>
+
+#include "core/atomic_file.h"
+#include "core/error.h"
+#include "data/features.h"
+#include "data/normalizer.h"
+#include "train/trainer.h"
+
+namespace mc {
+namespace fs = std::filesystem;
+namespace nn = torch::nn;
+
+namespace {
+
+nn::Sequential embedding_head(int in, int hidden, int out) {
+  return nn::Sequential(nn::Linear(in, hidden), nn::LayerNorm(nn::LayerNormOptions({hidden})),
+                        nn::LeakyReLU(nn::LeakyReLUOptions().negative_slope(0.2)), nn::Linear(hidden, out));
+}
+
+// Final hidden states of a bidirectional GRU over a padded batch -> [B, 2H].
+torch::Tensor bigru_last(nn::GRU& gru, const torch::Tensor& x, const torch::Tensor& lengths) {
+  auto packed = nn::utils::rnn::pack_padded_sequence(x, lengths.to(torch::kCPU), /*batch_first=*/true,
+                                                      /*enforce_sorted=*/false);
+  auto out = gru->forward_with_packed_input(packed);
+  auto h = std::get<1>(out);  // [2, B, H]
+  return torch::cat({h[0], h[1]}, -1);
+}
+
+struct TextEncoderImpl : nn::Module {
+  TextEncoderImpl(int vocab, const T2MEvaluatorConfig& c) {
+    embedding = register_module("embedding", nn::Embedding(nn::EmbeddingOptions(vocab, c.word_dim).padding_idx(0)));
+    gru = register_module("gru", nn::GRU(nn::GRUOptions(c.word_dim, c.text_hidden).batch_first(true).bidirectional(true)));
+    head = register_module("head", embedding_head(2 * c.text_hidden, c.text_hidden, c.embed_dim));
+  }
+  torch::Tensor forward(const torch::Tensor& ids, const torch::Tensor& lengths) {
+    return head->forward(bigru_last(gru, embedding(ids), lengths));
+  }
+  nn::Embedding embedding{nullptr};
+  nn::GRU gru{nullptr};
+  nn::Sequential head{nullptr};
+};
+TORCH_MODULE(TextEncoder);
+
+// Movement encoder (two stride-2 convs: time / 4) followed by a BiGRU, as T2M.
+struct MotionEncoderImpl : nn::Module {
+  MotionEncoderImpl(int feature_dim, const T2MEvaluatorConfig& c) : unit(c.unit_length) {
+    movement = register_module(
+        "movement",
+        nn::Sequential(nn::Conv1d(nn::Conv1dOptions(feature_dim, c.movement_dim, 4).stride(2).padding(1)),
+                       nn::Dropout(c.dropout), nn::LeakyReLU(nn::LeakyReLUOptions().negative_slope(0.2)),
+                       nn::Conv1d(nn::Conv1dOptions(c.movement_dim, c.movement_dim, 4).stride(2).padding(1)),
+                       nn::Dropout(c.dropout), nn::LeakyReLU(nn::LeakyReLUOptions().negative_slope(0.2))));
+    gru = register_module("gru",
+                          nn::GRU(nn::GRUOptions(c.movement_dim, c.motion_hidden).batch_first(true).bidirectional(true)));
+    head = register_module("head", embedding_head(2 * c.motion_hidden, c.motion_hidden, c.embed_dim));
+  }
+  // feats [B, T, F] normalised, T a multiple of 4; lengths [B] in frames (multiples of unit_length).
+  torch::Tensor forward(const torch::Tensor& feats, const torch::Tensor& lengths) {
+    auto h = movement->forward(feats.transpose(1, 2)).transpose(1, 2);  // [B, T/4, C]
+    auto steps = torch::clamp(torch::div(lengths, 4, "floor"), 1, h.size(1));
+    return head->forward(bigru_last(gru, h, steps));
+  }
+  int unit;
+  nn::Sequential movement{nullptr};
+  nn::GRU gru{nullptr};
+  nn::Sequential head{nullptr};
+};
+TORCH_MODULE(MotionEncoder);
+
+}  // namespace
+
+struct T2MEvaluatorNetImpl : nn::Module {
+  T2MEvaluatorNetImpl(int vocab, int feature_dim, const T2MEvaluatorConfig& c) {
+    text = register_module("text", TextEncoder(vocab, c));
+    motion = register_module("motion", MotionEncoder(feature_dim, c));
+    // The evaluator carries its own feature statistics so that it measures every
+    // motion file with the same yardstick, whatever statistics that file holds.
+    feature_mean = register_buffer("feature_mean", torch::zeros({feature_dim}));
+    feature_std = register_buffer("feature_std", torch::ones({feature_dim}));
+  }
+  TextEncoder text{nullptr};
+  MotionEncoder motion{nullptr};
+  torch::Tensor feature_mean, feature_std;
+};
+
+namespace {
+
+const char* kFeatureLayout = "mc67";
+
+struct EncodedTexts {
+  torch::Tensor ids, lengths;
+};
+
+EncodedTexts encode_texts(const TextVocab& vocab, const std::vector<std::string>& captions, int max_words) {
+  const int64_t B = captions.size();
+  auto ids = torch::zeros({B, max_words}, torch::kInt64);
+  auto lengths = torch::zeros({B}, torch::kInt64);
+  for (int64_t b = 0; b < B; ++b) {
+    auto e = vocab.encode(captions[b], max_words);
+    for (int k = 0; k < max_words; ++k) ids[b][k] = e.ids[k];
+    lengths[b] = std::max(1, e.length);
+  }
+  return {ids, lengths};
+}
+
+// Normalised feature windows [B, Tpad, F] of clips: `starts`/`takes` in feature frames.
+torch::Tensor gather_windows(const FeatureSet& fs_, const std::vector<int64_t>& idx, const std::vector<int64_t>& starts,
+                             const std::vector<int64_t>& takes, const torch::Tensor& mean, const torch::Tensor& std) {
+  int64_t T = 4;
+  for (auto t : takes) T = std::max(T, (t + 3) / 4 * 4);
+  const int64_t F = fs_.dim;
+  auto out = torch::zeros({static_cast<int64_t>(idx.size()), T, F});
+  for (size_t b = 0; b < idx.size(); ++b) {
+    auto clip = torch::from_blob(const_cast<float*>(fs_.clip(idx[b])), {fs_.t_max, F}, torch::kFloat32);
+    out[b].narrow(0, 0, takes[b]).copy_((clip.narrow(0, starts[b], takes[b]) - mean) / std);
+  }
+  return out;
+}
+
+class T2MEvaluatorTrainer : public Trainable {
+ public:
+  T2MEvaluatorTrainer(const T2MEvaluatorConfig& c, const TrainContext& ctx) : cfg_(c), ctx_(ctx) {
+    const MotionSet& set = ctx.data->set();
+    vocab_ = set.vocab.empty() ? TextVocab::build(set) : TextVocab(set.vocab, ctx.data->source());
+    features_ = compute_features(set, kFeatureLayout);
+    net_ = std::make_shared<T2MEvaluatorNetImpl>(vocab_.size(), features_.dim, c);
+    NormStats stats = set.stats.value_or(NormStats{});
+    if (stats.feature_layout != kFeatureLayout || static_cast<int>(stats.feature_mean.size()) != features_.dim)
+      stats = compute_norm_stats(set);
+    torch::NoGradGuard ng;
+    net_->feature_mean.copy_(torch::tensor(stats.feature_mean));
+    net_->feature_std.copy_(torch::tensor(stats.feature_std));
+  }
+  nn::Module& module() override { return *net_; }
+
+  // Random caption and random unit-aligned crop per clip (T2M's loader), both
+  // drawn from torch's generator so resume is exact.
+  std::pair<torch::Tensor, torch::Tensor> sample_motions(const std::vector<int64_t>& idx, bool random_crop) {
+    std::vector<int64_t> starts, takes;
+    const int64_t unit = cfg_.unit_length;
+    for (int64_t i : idx) {
+      int64_t len = features_.lengths[i];
+      int64_t take = std::max<int64_t>(unit, len / unit * unit);
+      if (random_crop && take > 2 * unit && torch::randint(0, 3, {1}).item<int64_t>() == 0) take -= unit;
+      take = std::min(take, len);
+      int64_t start = random_crop && len > take ? torch::randint(0, len - take + 1, {1}).item<int64_t>() : 0;
+      starts.push_back(start);
+      takes.push_back(take);
+    }
+    auto x = gather_windows(features_, idx, starts, takes, net_->feature_mean, net_->feature_std);
+    return {x, torch::tensor(takes)};
+  }
+
+  LossOutput loss(const std::vector<int64_t>& idx) override {
+    const MotionSet& set = ctx_.data->set();
+    std::vector<std::string> caps;
+    for (int64_t i : idx) {
+      const auto& c = set.captions[i];
+      caps.push_back(c[torch::randint(0, static_cast<int64_t>(c.size()), {1}).item<int64_t>()]);
+    }
+    auto [x, lengths] = sample_motions(idx, true);
+    auto txt = encode_texts(vocab_, caps, cfg_.max_words);
+    auto t = net_->text->forward(txt.ids.to(ctx_.device), txt.lengths);
+    auto m = net_->motion->forward(x.to(ctx_.device), lengths);
+    // Margin contrastive loss (T2M): pull pairs together, push rolled pairs past the margin.
+    auto d_pos = (t - m).norm(2, 1);
+    auto d_neg = (t - m.roll(1, 0)).norm(2, 1);
+    // A rolled pair with the same caption is not a negative (template captions repeat).
+    auto valid = torch::ones({static_cast<int64_t>(idx.size())});
+    for (size_t b = 0; b < idx.size(); ++b)
+      if (caps[b] == caps[(b + idx.size() - 1) % idx.size()]) valid[b] = 0;
+    valid = valid.to(ctx_.device);
+    auto pos = d_pos.pow(2).mean();
+    auto neg = (torch::clamp(cfg_.margin - d_neg, 0).pow(2) * valid).sum() / valid.sum().clamp_min(1);
+    LossOutput out;
+    out.loss = pos + neg;
+    out.parts = {{"pos_dist", d_pos.mean().detach()}, {"neg_dist", d_neg.mean().detach()}};
+    return out;
+  }
+
+  std::map<std::string, double> evaluate() override {
+    torch::NoGradGuard ng;
+    net_->eval();
+    auto idx = ctx_.data->split("val");
+    const MotionSet& set = ctx_.data->set();
+    double pos = 0, neg = 0;
+    int64_t n = 0;
+    for (size_t s = 0; s + 1 < idx.size(); s += 64) {
+      std::vector<int64_t> chunk(idx.begin() + s, idx.begin() + std::min(idx.size(), s + 64));
+      std::vector<std::string> caps;
+      for (int64_t i : chunk) caps.push_back(set.captions[i][0]);
+      auto [x, lengths] = sample_motions(chunk, false);
+      auto txt = encode_texts(vocab_, caps, cfg_.max_words);
+      auto t = net_->text->forward(txt.ids, txt.lengths);
+      auto m = net_->motion->forward(x, lengths);
+      pos += (t - m).norm(2, 1).sum().item<double>();
+      neg += (t - m.roll(1, 0)).norm(2, 1).sum().item<double>();
+      n += chunk.size();
+    }
+    return {{"val_pos_dist", pos / std::max<int64_t>(1, n)}, {"val_neg_dist", neg / std::max<int64_t>(1, n)}};
+  }
+
+  void save_artifacts(const fs::path& outputs) override {
+    std::string words;
+    for (auto& w : vocab_.words()) words += w + "\n";
+    write_file_atomic(outputs / "vocab.txt", words);
+    YAML::Emitter e;
+    e << YAML::BeginMap << YAML::Key << "feature_layout" << YAML::Value << kFeatureLayout << YAML::Key
+      << "feature_dim" << YAML::Value << features_.dim << YAML::Key << "fps" << YAML::Value << ctx_.data->set().fps
+      << YAML::Key << "skeleton" << YAML::Value << YAML::Literal << skeleton_to_yaml(ctx_.data->set().skeleton)
+      << YAML::EndMap;
+    write_file_atomic(outputs / "evaluator_meta.yaml", std::string(e.c_str()) + "\n");
+  }
+
+ private:
+  T2MEvaluatorConfig cfg_;
+  TrainContext ctx_;
+  TextVocab vocab_{TextVocab::special_tokens()};
+  FeatureSet features_;
+  std::shared_ptr<T2MEvaluatorNetImpl> net_;
+};
+
+}  // namespace
+
+MC_REGISTER_MODEL("t2m_evaluator", T2MEvaluatorConfig,
+                  [](const Config& c, const TrainContext& ctx) -> std::unique_ptr<Trainable> {
+                    return std::make_unique<T2MEvaluatorTrainer>(dynamic_cast<const T2MEvaluatorConfig&>(c), ctx);
+                  },
+                  "T2M-style text/motion evaluator (BiGRU encoders, margin contrastive loss)");
+
+// ---------------------------------------------------------------- loading
+
+T2MEvaluator T2MEvaluator::load(const std::string& run_dir) {
+  fs::path dir(run_dir);
+  fs::path final_pt = dir / "checkpoints" / "final.pt";
+  for (const fs::path& p : {dir / "config.yaml", final_pt, dir / "outputs" / "vocab.txt",
+                            dir / "outputs" / "evaluator_meta.yaml"})
+    if (!fs::exists(p))
+      fail("evaluator run '{}' is incomplete: '{}' is missing; train it with `motionctl train "
+           "configs/eval/evaluator_smoke.yaml` (or point eval.evaluator at a finished evaluator run)",
+           run_dir, p.string());
+  TrainJobConfig job;
+  parse_config(compose_config((dir / "config.yaml").string()), job);
+  if (job.model.type != "t2m_evaluator")
+    fail("'{}' is a run of model type '{}', not an evaluator (t2m_evaluator)", run_dir, job.model.type);
+  T2MEvaluator ev;
+  ev.run_dir_ = run_dir;
+  ev.cfg_ = job.model.as<T2MEvaluatorConfig>();
+  std::vector<std::string> words;
+  {
+    std::ifstream f(dir / "outputs" / "vocab.txt");
+    for (std::string w; std::getline(f, w);) words.push_back(w);
+  }
+  ev.vocab_ = std::make_shared<TextVocab>(words, (dir / "outputs" / "vocab.txt").string());
+  YAML::Node meta;
+  try {
+    meta = YAML::LoadFile((dir / "outputs" / "evaluator_meta.yaml").string());
+    ev.fps_ = meta["fps"].as<double>();
+    ev.skeleton_ = skeleton_from_yaml_text(meta["skeleton"].as<std::string>(), run_dir + "/outputs/evaluator_meta.yaml");
+  } catch (const YAML::Exception& e) {
+    fail("'{}/outputs/evaluator_meta.yaml' is corrupt: {}", run_dir, e.what());
+  }
+  ev.net_ = std::make_shared<T2MEvaluatorNetImpl>(ev.vocab_->size(), meta["feature_dim"].as<int>(), ev.cfg_);
+  try {
+    torch::serialize::InputArchive ar;
+    ar.load_from(final_pt.string());
+    ev.net_->load(ar);
+  } catch (const c10::Error& e) {
+    fail("evaluator checkpoint '{}' is unreadable or does not match its config.yaml", final_pt.string());
+  }
+  ev.net_->eval();
+  return ev;
+}
+
+Eigen::MatrixXd T2MEvaluator::embed_texts(const std::vector<std::string>& captions) const {
+  torch::NoGradGuard ng;
+  Eigen::MatrixXd out(captions.size(), cfg_.embed_dim);
+  for (size_t s = 0; s < captions.size(); s += 256) {
+    std::vector<std::string> chunk(captions.begin() + s, captions.begin() + std::min(captions.size(), s + 256));
+    auto txt = encode_texts(*vocab_, chunk, cfg_.max_words);
+    auto t = net_->text->forward(txt.ids, txt.lengths).to(torch::kFloat64).contiguous();
+    auto acc = t.accessor<double, 2>();
+    for (int64_t i = 0; i < t.size(0); ++i)
+      for (int64_t k = 0; k < t.size(1); ++k) out(s + i, k) = acc[i][k];
+  }
+  return out;
+}
+
+Eigen::MatrixXd T2MEvaluator::embed_motions(const MotionSet& m, const std::string& source) const {
+  if (!(m.skeleton == skeleton_))
+    fail("{}: skeleton '{}' differs from the evaluator's '{}' ({}); evaluate motions of the skeleton the evaluator "
+         "was trained on",
+         source, m.skeleton.name, skeleton_.name, run_dir_);
+  if (std::abs(m.fps - fps_) > 1e-9)
+    fail("{}: fps {} differs from the evaluator's {}; resample the motions to {} fps", source, m.fps, fps_, fps_);
+  for (size_t i = 0; i < m.size(); ++i)
+    if (m.lengths[i] < 2 * cfg_.unit_length + 1)
+      fail("{}: clip {} ('{}') has {} frames; the evaluator needs at least {}", source, i, m.ids[i], m.lengths[i],
+           2 * cfg_.unit_length + 1);
+  torch::NoGradGuard ng;
+  FeatureSet feats = compute_features(m, kFeatureLayout);
+  Eigen::MatrixXd out(m.size(), cfg_.embed_dim);
+  for (size_t s = 0; s < m.size(); s += 128) {
+    std::vector<int64_t> idx, starts, takes;
+    for (size_t i = s; i < std::min(m.size(), s + 128); ++i) {
+      idx.push_back(i);
+      starts.push_back(0);
+      int64_t len = feats.lengths[i];
+      takes.push_back(std::max<int64_t>(cfg_.unit_length, len / cfg_.unit_length * cfg_.unit_length));
+    }
+    auto x = gather_windows(feats, idx, starts, takes, net_->feature_mean, net_->feature_std);
+    auto e = net_->motion->forward(x, torch::tensor(takes)).to(torch::kFloat64).contiguous();
+    auto acc = e.accessor<double, 2>();
+    for (int64_t i = 0; i < e.size(0); ++i)
+      for (int64_t k = 0; k < e.size(1); ++k) out(s + i, k) = acc[i][k];
+  }
+  return out;
+}
+
+}  // namespace mc
