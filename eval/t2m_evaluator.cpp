@@ -11,6 +11,7 @@
 #include "core/error.h"
 #include "data/features.h"
 #include "data/normalizer.h"
+#include "eval/metrics.h"
 #include "train/trainer.h"
 
 namespace mc {
@@ -93,6 +94,15 @@ struct T2MEvaluatorNetImpl : nn::Module {
 namespace {
 
 const char* kFeatureLayout = "mc67";
+
+Eigen::MatrixXd to_eigen(const torch::Tensor& t2d) {
+  auto t = t2d.to(torch::kFloat64).contiguous();
+  Eigen::MatrixXd out(t.size(0), t.size(1));
+  auto acc = t.accessor<double, 2>();
+  for (int64_t i = 0; i < t.size(0); ++i)
+    for (int64_t k = 0; k < t.size(1); ++k) out(i, k) = acc[i][k];
+  return out;
+}
 
 struct EncodedTexts {
   torch::Tensor ids, lengths;
@@ -185,26 +195,31 @@ class T2MEvaluatorTrainer : public Trainable {
     return out;
   }
 
+  // Validation retrieval quality with the first caption of each clip (pools of 32).
   std::map<std::string, double> evaluate() override {
     torch::NoGradGuard ng;
     net_->eval();
     auto idx = ctx_.data->split("val");
     const MotionSet& set = ctx_.data->set();
-    double pos = 0, neg = 0;
-    int64_t n = 0;
-    for (size_t s = 0; s + 1 < idx.size(); s += 64) {
+    Embeddings text(idx.size(), cfg_.embed_dim), motion(idx.size(), cfg_.embed_dim);
+    for (size_t s = 0; s < idx.size(); s += 64) {
       std::vector<int64_t> chunk(idx.begin() + s, idx.begin() + std::min(idx.size(), s + 64));
       std::vector<std::string> caps;
       for (int64_t i : chunk) caps.push_back(set.captions[i][0]);
       auto [x, lengths] = sample_motions(chunk, false);
       auto txt = encode_texts(vocab_, caps, cfg_.max_words);
-      auto t = net_->text->forward(txt.ids, txt.lengths);
-      auto m = net_->motion->forward(x, lengths);
-      pos += (t - m).norm(2, 1).sum().item<double>();
-      neg += (t - m.roll(1, 0)).norm(2, 1).sum().item<double>();
-      n += chunk.size();
+      auto t = net_->text->forward(txt.ids, txt.lengths).to(torch::kFloat64).contiguous();
+      auto m = net_->motion->forward(x, lengths).to(torch::kFloat64).contiguous();
+      text.middleRows(s, chunk.size()) = to_eigen(t);
+      motion.middleRows(s, chunk.size()) = to_eigen(m);
     }
-    return {{"val_pos_dist", pos / std::max<int64_t>(1, n)}, {"val_neg_dist", neg / std::max<int64_t>(1, n)}};
+    std::map<std::string, double> out{{"val_matching", matching_score(text, motion)}};
+    if (idx.size() >= 32) {
+      auto r = r_precision(text, motion, 32, 3);
+      out["val_r_precision_top1"] = r[0];
+      out["val_r_precision_top3"] = r[2];
+    }
+    return out;
   }
 
   void save_artifacts(const fs::path& outputs) override {
@@ -285,10 +300,7 @@ Eigen::MatrixXd T2MEvaluator::embed_texts(const std::vector<std::string>& captio
   for (size_t s = 0; s < captions.size(); s += 256) {
     std::vector<std::string> chunk(captions.begin() + s, captions.begin() + std::min(captions.size(), s + 256));
     auto txt = encode_texts(*vocab_, chunk, cfg_.max_words);
-    auto t = net_->text->forward(txt.ids, txt.lengths).to(torch::kFloat64).contiguous();
-    auto acc = t.accessor<double, 2>();
-    for (int64_t i = 0; i < t.size(0); ++i)
-      for (int64_t k = 0; k < t.size(1); ++k) out(s + i, k) = acc[i][k];
+    out.middleRows(s, chunk.size()) = to_eigen(net_->text->forward(txt.ids, txt.lengths));
   }
   return out;
 }
@@ -316,10 +328,7 @@ Eigen::MatrixXd T2MEvaluator::embed_motions(const MotionSet& m, const std::strin
       takes.push_back(std::max<int64_t>(cfg_.unit_length, len / cfg_.unit_length * cfg_.unit_length));
     }
     auto x = gather_windows(feats, idx, starts, takes, net_->feature_mean, net_->feature_std);
-    auto e = net_->motion->forward(x, torch::tensor(takes)).to(torch::kFloat64).contiguous();
-    auto acc = e.accessor<double, 2>();
-    for (int64_t i = 0; i < e.size(0); ++i)
-      for (int64_t k = 0; k < e.size(1); ++k) out(s + i, k) = acc[i][k];
+    out.middleRows(s, idx.size()) = to_eigen(net_->motion->forward(x, torch::tensor(takes)));
   }
   return out;
 }
