@@ -689,6 +689,26 @@ ConstraintSpec load_constraint_spec_h5(const std::string& path, const std::strin
     fail("{}: no group '{}' (a constraint file keeps its items under /{})", path, group, group);
   H5Handle g(H5Gopen2(file.get(), group.c_str(), H5P_DEFAULT), H5Gclose);
   if (!g.valid()) fail("{}: '{}' is not a group", path, group);
+  {
+    if (H5Aexists(g.get(), "format") > 0) {
+      H5Handle a(H5Aopen(g.get(), "format", H5P_DEFAULT), H5Aclose);
+      H5Handle mt = utf8_string_type();
+      H5Handle t(H5Aget_type(a.get()), H5Tclose);
+      std::string format;
+      if (H5Tget_class(t.get()) == H5T_STRING && H5Tis_variable_str(t.get()) > 0) {
+        char* s = nullptr;
+        if (H5Aread(a.get(), mt.get(), &s) >= 0 && s) format = s, H5free_memory(s);
+      }
+      if (!format.empty() && format != kH5Format)
+        fail("{}: /{} has format '{}', expected '{}'", path, group, format, kH5Format);
+    }
+    if (H5Aexists(g.get(), "format_version") > 0) {
+      H5Handle a(H5Aopen(g.get(), "format_version", H5P_DEFAULT), H5Aclose);
+      int64_t version = 0;
+      if (H5Aread(a.get(), H5T_NATIVE_INT64, &version) < 0 || version > kH5FormatVersion)
+        fail("{}: /{} has format_version {}, this build reads up to {}", path, group, version, kH5FormatVersion);
+    }
+  }
   // Items are read in the numeric order of their names (item_0, item_1, ..., item_10).
   std::vector<std::pair<long, std::string>> names;
   H5G_info_t info;
