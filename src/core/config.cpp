@@ -263,9 +263,9 @@ struct Composer {
           for (auto it = parts.rbegin(); it != parts.rend(); ++it) {
             YAML::Node m(YAML::NodeType::Map);
             m[*it] = inner;
-            inner = m;
+            inner.reset(m);
           }
-          wrapped = inner;
+          wrapped.reset(inner);
           for (auto& [k, v] : sub.origin) wrapped_origin[join_path(package, k)] = v;
           if (sub.origin.empty()) wrapped_origin[package] = f.string();
         }
@@ -317,7 +317,7 @@ void apply_override(ConfigSource& src, const std::string& ov) {
     } else if (!next.IsMap()) {
       fail("override '{}': '{}' is a value, not a section", ov, path);
     }
-    cur = next;
+    cur.reset(next);
   }
   cur[parts.back()] = value;
   erase_below(src.origin, key);
