@@ -1,0 +1,218 @@
+// The flow prior's text encoder, network bundle and trainer (model type
+// `flow_prior`): rectified-flow velocity regression with condition dropout.
+#include "models/flow_prior.h"
+
+#include <ATen/CPUGeneratorImpl.h>
+#include <yaml-cpp/yaml.h>
+
+#include "core/atomic_file.h"
+#include "core/error.h"
+#include "data/skeleton.h"
+#include "train/trainable.h"
+
+namespace mc {
+namespace nn = torch::nn;
+
+// ---------------------------------------------------------------- config
+
+std::string FlowPriorConfig::validate() const {
+  int w = width > 0 ? width : 64 * depth, h = heads > 0 ? heads : depth;
+  if (w % h != 0) return fmt::format("width {} is not a multiple of heads {}", w, h);
+  if ((w / h) % 2 != 0) return fmt::format("head size width/heads = {} must be even for RoPE", w / h);
+  if (text_width % text_heads != 0)
+    return fmt::format("text_width {} is not a multiple of text_heads {}", text_width, text_heads);
+  if (eval_t.empty()) return "eval_t needs at least one flow time";
+  return "";
+}
+
+FlowTransformerOptions FlowPriorConfig::transformer_options(int num_joints) const {
+  FlowTransformerOptions o;
+  o.num_joints = num_joints;
+  o.depth = depth;
+  o.width = width > 0 ? width : 64 * depth;
+  o.heads = heads > 0 ? heads : depth;
+  o.mlp_hidden = mlp_hidden;
+  o.dropout = dropout;
+  o.cond_dim = text_width;
+  return o;
+}
+
+// ---------------------------------------------------------------- text
+
+FlowTextEncoderImpl::FlowTextEncoderImpl(int vocab_size, const FlowPriorConfig& c) {
+  embedding = register_module("embedding",
+                              nn::Embedding(nn::EmbeddingOptions(vocab_size, c.text_width).padding_idx(TextVocab::kPad)));
+  position = register_module("position", nn::Embedding(c.max_words, c.text_width));
+  // LibTorch 1.13's encoder layer is post-norm; at 2 layers that trains fine.
+  auto layer = nn::TransformerEncoderLayer(nn::TransformerEncoderLayerOptions(c.text_width, c.text_heads)
+                                               .dim_feedforward(c.text_ff)
+                                               .dropout(c.text_dropout)
+                                               .activation(torch::kGELU));
+  encoder = register_module("encoder", nn::TransformerEncoder(nn::TransformerEncoderOptions(layer, c.text_layers)));
+  norm = register_module("norm", nn::LayerNorm(nn::LayerNormOptions({c.text_width})));
+  out = register_module("out", nn::Linear(c.text_width, c.text_width));
+  torch::NoGradGuard ng;
+  nn::init::normal_(embedding->weight, 0.0, 0.02);
+  embedding->weight[TextVocab::kPad].zero_();
+  nn::init::normal_(position->weight, 0.0, 0.02);
+}
+
+torch::Tensor FlowTextEncoderImpl::forward(const torch::Tensor& ids, const torch::Tensor& lengths) {
+  const int64_t B = ids.size(0), L = ids.size(1);
+  auto dev = ids.device();
+  auto pos = torch::arange(L, torch::TensorOptions().dtype(torch::kInt64).device(dev));
+  auto h = embedding(ids) + position(pos).unsqueeze(0);  // [B, L, E]
+  auto valid = pos.unsqueeze(0) < lengths.to(dev).unsqueeze(1);  // [B, L]
+  h = encoder->forward(h.transpose(0, 1), torch::Tensor(), valid.logical_not()).transpose(0, 1);
+  // Mean over the real tokens: every word counts, unlike a last-token readout
+  // which a post-norm encoder this shallow tends to wash out.
+  auto m = valid.unsqueeze(-1).to(h.dtype());
+  auto pooled = (h * m).sum(1) / m.sum(1).clamp_min(1.0);
+  (void)B;
+  return out(norm(pooled));
+}
+
+EncodedCaptions encode_captions(const TextVocab& vocab, const std::vector<std::string>& captions, int max_words) {
+  const int64_t B = captions.size();
+  auto ids = torch::zeros({B, max_words}, torch::kInt64);
+  auto lengths = torch::zeros({B}, torch::kInt64);
+  auto ia = ids.accessor<int64_t, 2>();
+  for (int64_t b = 0; b < B; ++b) {
+    auto e = vocab.encode(captions[b], max_words);
+    for (int k = 0; k < max_words; ++k) ia[b][k] = e.ids[k];
+    lengths[b] = std::max(1, e.length);
+  }
+  return {ids, lengths};
+}
+
+// ---------------------------------------------------------------- bundle
+
+FlowPriorNetImpl::FlowPriorNetImpl(int vocab_size, int num_joints, const FlowPriorConfig& c) {
+  text = register_module("text", FlowTextEncoder(vocab_size, c));
+  transformer = register_module("transformer", FlowTransformer(c.transformer_options(num_joints)));
+  null_text = register_parameter("null_text", torch::randn({c.text_width}) * 0.02);
+  joint_mean = register_buffer("joint_mean", torch::zeros({3}));
+  joint_std = register_buffer("joint_std", torch::ones({3}));
+}
+
+torch::Tensor FlowPriorNetImpl::encode_text(const torch::Tensor& ids, const torch::Tensor& lengths) {
+  return text->forward(ids, lengths);
+}
+
+torch::Tensor FlowPriorNetImpl::null_condition(int64_t B) const { return null_text.unsqueeze(0).expand({B, -1}); }
+
+// ---------------------------------------------------------------- trainer
+
+namespace {
+
+class FlowPriorTrainer : public Trainable {
+ public:
+  FlowPriorTrainer(const FlowPriorConfig& c, const TrainContext& ctx) : cfg_(c), ctx_(ctx) {
+    const MotionSet& set = ctx.data->set();
+    vocab_ = set.vocab.empty() ? TextVocab::build(set) : TextVocab(set.vocab, ctx.data->source());
+    net_ = FlowPriorNet(vocab_.size(), ctx.data->num_joints(), c);
+    torch::NoGradGuard ng;
+    net_->joint_mean.copy_(ctx.data->joint_mean());
+    net_->joint_std.copy_(ctx.data->joint_std());
+  }
+  nn::Module& module() override { return *net_; }
+
+  // Flow-matching loss, eq. (3), masked to valid frames; t, x0, crops, captions
+  // and condition dropout all come from torch's generator (exact resume).
+  LossOutput loss(const std::vector<int64_t>& idx) override {
+    MotionBatch b = ctx_.data->batch(idx, ctx_.window, 1, ctx_.device);
+    const MotionSet& set = ctx_.data->set();
+    std::vector<std::string> caps;
+    for (int64_t i : idx) {
+      const auto& c = set.captions[i];
+      caps.push_back(c[torch::randint(0, static_cast<int64_t>(c.size()), {1}).item<int64_t>()]);
+    }
+    const int64_t B = idx.size();
+    auto x0 = torch::randn(b.joints.sizes()).to(ctx_.device);
+    auto t = torch::rand({B}).to(ctx_.device);
+    auto drop = (torch::rand({B}) < cfg_.cond_drop).to(ctx_.device);
+    auto fl = flow_loss(b, caps, x0, t, drop);
+    LossOutput out;
+    out.loss = fl;
+    out.parts = {{"fm", fl.detach()}};
+    return out;
+  }
+
+  // Validation flow loss at fixed t (first caption, whole clips, a constant-seeded
+  // local generator for x0): comparable across runs and leaves torch's RNG alone.
+  std::map<std::string, double> evaluate() override {
+    torch::NoGradGuard ng;
+    net_->eval();
+    auto idx = ctx_.data->split("val");
+    const MotionSet& set = ctx_.data->set();
+    auto gen = at::make_generator<at::CPUGeneratorImpl>(20240611);
+    std::map<std::string, double> out;
+    double total = 0;
+    for (double tv : cfg_.eval_t) {
+      double sum = 0, weight = 0;
+      for (size_t s = 0; s < idx.size(); s += 32) {
+        std::vector<int64_t> chunk(idx.begin() + s, idx.begin() + std::min(idx.size(), s + 32));
+        MotionBatch b = ctx_.data->batch(chunk, 0, 1, ctx_.device);
+        std::vector<std::string> caps;
+        for (int64_t i : chunk) caps.push_back(set.captions[i][0]);
+        const int64_t B = chunk.size();
+        auto x0 = torch::randn(b.joints.sizes(), gen, torch::TensorOptions()).to(ctx_.device);
+        auto t = torch::full({B}, tv, torch::TensorOptions().device(ctx_.device));
+        auto drop = torch::zeros({B}, torch::TensorOptions().dtype(torch::kBool).device(ctx_.device));
+        double w = b.mask.sum().item<double>();
+        sum += flow_loss(b, caps, x0, t, drop).item<double>() * w;
+        weight += w;
+      }
+      double l = sum / std::max(1.0, weight);
+      out[fmt::format("val_fm_t{:.2f}", tv)] = l;
+      total += l;
+    }
+    out["val_fm"] = total / cfg_.eval_t.size();
+    return out;
+  }
+
+  void save_artifacts(const fs::path& outputs) override {
+    std::string words;
+    for (auto& w : vocab_.words()) words += w + "\n";
+    write_file_atomic(outputs / "vocab.txt", words);
+    const MotionSet& set = ctx_.data->set();
+    YAML::Emitter e;
+    e << YAML::BeginMap << YAML::Key << "fps" << YAML::Value << set.fps << YAML::Key << "t_max" << YAML::Value
+      << set.t_max << YAML::Key << "num_joints" << YAML::Value << set.num_joints() << YAML::Key << "data"
+      << YAML::Value << ctx_.data->source() << YAML::Key << "skeleton" << YAML::Value << YAML::Literal
+      << skeleton_to_yaml(set.skeleton) << YAML::EndMap;
+    write_file_atomic(outputs / "prior_meta.yaml", std::string(e.c_str()) + "\n");
+  }
+
+ private:
+  // Masked MSE between the predicted and the target velocity x1 - x0 on
+  // x_t = t x1 + (1 - t) x0, eq. (2)-(3).
+  torch::Tensor flow_loss(const MotionBatch& b, const std::vector<std::string>& caps, const torch::Tensor& x0,
+                          const torch::Tensor& t, const torch::Tensor& drop) {
+    const auto& x1 = b.joints;
+    auto tb = t.view({-1, 1, 1, 1});
+    auto xt = tb * x1 + (1 - tb) * x0;
+    auto enc = encode_captions(vocab_, caps, cfg_.max_words);
+    auto cond = net_->encode_text(enc.ids.to(ctx_.device), enc.lengths.to(ctx_.device));
+    cond = torch::where(drop.unsqueeze(1), net_->null_condition(cond.size(0)), cond);
+    auto v = net_->transformer->forward(xt, t, cond, b.mask).velocity;
+    auto m = b.mask.view({b.mask.size(0), b.mask.size(1), 1, 1}).to(v.dtype());
+    auto denom = m.sum() * x1.size(2) * 3 + 1e-8;
+    return ((v - (x1 - x0)).pow(2) * m).sum() / denom;
+  }
+
+  FlowPriorConfig cfg_;
+  TrainContext ctx_;
+  TextVocab vocab_{TextVocab::special_tokens()};
+  FlowPriorNet net_{nullptr};
+};
+
+}  // namespace
+
+MC_REGISTER_MODEL("flow_prior", FlowPriorConfig,
+                  [](const Config& c, const TrainContext& ctx) -> std::unique_ptr<Trainable> {
+                    return std::make_unique<FlowPriorTrainer>(dynamic_cast<const FlowPriorConfig&>(c), ctx);
+                  },
+                  "ACMDM-style text-conditioned flow prior on absolute joints (AdaLN-Zero transformer, RoPE)");
+
+}  // namespace mc

@@ -1,0 +1,82 @@
+// The text-conditioned flow prior (model type `flow_prior`): config, the jointly
+// trained text encoder and the network bundle a trained run stores in final.pt.
+#pragma once
+#include <string>
+#include <vector>
+
+#include "core/config.h"
+#include "data/text_vocab.h"
+#include "models/flow_transformer.h"
+
+namespace mc {
+
+struct FlowPriorConfig : Config {
+  // Family rule (reference-facts §2): width = 64 * depth, heads = depth; 0 follows it.
+  int depth = 8;
+  int width = 0;
+  int heads = 0;
+  int mlp_hidden = 0;  // 0 = 8/3 * width rounded up to 64 (SwiGLU with the params of a 4x MLP)
+  double dropout = 0.0;
+  double cond_drop = 0.1;
+  // Text encoder (trained jointly; no pretrained CLIP here).
+  int text_width = 256;
+  int text_layers = 2;
+  int text_heads = 4;
+  int text_ff = 512;
+  double text_dropout = 0.1;
+  int max_words = 32;
+  std::vector<double> eval_t = {0.1, 0.3, 0.5, 0.7, 0.9};
+  void visit(FieldVisitor& v) override {
+    v("depth", depth, "transformer blocks L", in_range(1, 64));
+    v("width", width, "hidden size d (0 = 64 * depth)", at_least(0));
+    v("heads", heads, "attention heads (0 = depth); width / heads must be even for RoPE", at_least(0));
+    v("mlp_hidden", mlp_hidden, "SwiGLU hidden size (0 = 8/3 * width rounded up to a multiple of 64)", at_least(0));
+    v("dropout", dropout, "dropout on attention probabilities and the MLP hidden", in_range(0.0, 0.9));
+    v("cond_drop", cond_drop, "probability of replacing the text by the learned null embedding (for CFG)",
+      in_range(0.0, 1.0));
+    v("text_width", text_width, "text encoder width (also the pooled text vector size)", at_least(8));
+    v("text_layers", text_layers, "text transformer encoder layers", in_range(1, 12));
+    v("text_heads", text_heads, "text encoder attention heads", at_least(1));
+    v("text_ff", text_ff, "text encoder feed-forward size", at_least(8));
+    v("text_dropout", text_dropout, "text encoder dropout", in_range(0.0, 0.9));
+    v("max_words", max_words, "caption length cap in tokens (incl. <sos>/<eos>)", in_range(4, 256));
+    v("eval_t", eval_t, "flow times at which evaluate() reports the validation loss", each(in_range(0.0, 1.0)));
+  }
+  std::string validate() const override;
+  FlowTransformerOptions transformer_options(int num_joints) const;
+};
+
+// Word embeddings + learned positions + a pre-norm transformer encoder, mean-pooled
+// over the real tokens (<sos> words <eos>) and projected: one vector per caption.
+struct FlowTextEncoderImpl : torch::nn::Module {
+  FlowTextEncoderImpl(int vocab_size, const FlowPriorConfig& c);
+  torch::Tensor forward(const torch::Tensor& ids, const torch::Tensor& lengths);  // [B, L], [B] -> [B, text_width]
+  torch::nn::Embedding embedding{nullptr}, position{nullptr};
+  torch::nn::TransformerEncoder encoder{nullptr};
+  torch::nn::LayerNorm norm{nullptr};
+  torch::nn::Linear out{nullptr};
+};
+TORCH_MODULE(FlowTextEncoder);
+
+struct EncodedCaptions {
+  torch::Tensor ids;      // [B, max_words] int64
+  torch::Tensor lengths;  // [B] int64
+};
+EncodedCaptions encode_captions(const TextVocab& vocab, const std::vector<std::string>& captions, int max_words);
+
+// Everything final.pt holds: text encoder, null text embedding, velocity network
+// and the dataset's per-axis normalisation (buffers, so the weights carry them).
+struct FlowPriorNetImpl : torch::nn::Module {
+  FlowPriorNetImpl(int vocab_size, int num_joints, const FlowPriorConfig& c);
+  // Pooled text vectors [B, text_width].
+  torch::Tensor encode_text(const torch::Tensor& ids, const torch::Tensor& lengths);
+  // The null condition broadcast to [B, text_width].
+  torch::Tensor null_condition(int64_t B) const;
+  FlowTextEncoder text{nullptr};
+  FlowTransformer transformer{nullptr};
+  torch::Tensor null_text;             // [text_width] parameter
+  torch::Tensor joint_mean, joint_std;  // (3,) buffers
+};
+TORCH_MODULE(FlowPriorNet);
+
+}  // namespace mc
