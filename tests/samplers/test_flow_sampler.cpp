@@ -1,0 +1,266 @@
+// Flow prior loading, classifier-free guidance, the Euler sampler and its step
+// hook, non-finite detection, and `motionctl train` + `motionctl sample` end to end.
+#include <catch2/catch.hpp>
+
+#include <yaml-cpp/yaml.h>
+
+#include "core/atomic_file.h"
+#include "core/error.h"
+#include "data/motion_set.h"
+#include "data/skeleton.h"
+#include "samplers/flow_sampler.h"
+#include "test_util.h"
+#include "train/trainer.h"
+
+using namespace mc;
+using namespace mc::test;
+
+namespace {
+
+const std::vector<std::string> kWords = {"<pad>", "<unk>", "<sos>", "<eos>", "a", "person", "walks", "jumps", "forward"};
+
+// A complete run directory of an untrained (randomised) tiny prior, as training writes it.
+void write_prior_run(const fs::path& dir, const std::string& model_type = "flow_prior") {
+  TrainJobConfig job;
+  parse_config(config_from_string("model:\n  type: flow_prior\n  depth: 2\n  width: 64\n  heads: 2\n"
+                                  "  text_width: 32\n  text_heads: 4\n  text_ff: 64\n  text_layers: 1\n"),
+               job);
+  std::string yaml = dump_config(job);
+  if (model_type != "flow_prior") yaml = "model:\n  type: " + model_type + "\n";
+  write_file_atomic(dir / "config.yaml", yaml);
+  std::string words;
+  for (auto& w : kWords) words += w + "\n";
+  write_file_atomic(dir / "outputs" / "vocab.txt", words);
+  YAML::Emitter e;
+  e << YAML::BeginMap << YAML::Key << "fps" << YAML::Value << 20.0 << YAML::Key << "t_max" << YAML::Value << 40
+    << YAML::Key << "num_joints" << YAML::Value << 22 << YAML::Key << "data" << YAML::Value << ""
+    << YAML::Key << "skeleton" << YAML::Value << YAML::Literal << skeleton_to_yaml(humanml3d_skeleton())
+    << YAML::EndMap;
+  write_file_atomic(dir / "outputs" / "prior_meta.yaml", std::string(e.c_str()) + "\n");
+  torch::manual_seed(5);
+  FlowPriorNet net(static_cast<int>(kWords.size()), 22, job.model.as<FlowPriorConfig>());
+  {
+    torch::NoGradGuard ng;
+    for (auto& p : net->parameters()) p.normal_(0.0, 0.1);
+    net->joint_mean.copy_(torch::tensor({0.0f, 0.9f, 0.1f}));
+    net->joint_std.copy_(torch::tensor({0.5f, 0.4f, 0.8f}));
+  }
+  torch::serialize::OutputArchive ar;
+  net->save(ar);
+  fs::create_directories(dir / "checkpoints");
+  ar.save_to((dir / "checkpoints" / "final.pt").string());
+}
+
+template <class F>
+std::string user_error_of(F&& f) {
+  try {
+    f();
+  } catch (const UserError& e) {
+    return e.what();
+  }
+  return "";
+}
+
+// Records what the sampler passes to each step, then takes the Euler step.
+struct RecordingStepper : FlowStepper {
+  std::vector<double> ts, t_nexts;
+  int begins = 0;
+  double max_hat_error = 0;
+  torch::Tensor begin(const torch::Tensor& x0, const torch::Tensor& mask, const std::vector<int64_t>& ids) override {
+    ++begins;
+    (void)mask;
+    (void)ids;
+    return x0;
+  }
+  torch::Tensor step(const FlowStep& s) override {
+    ts.push_back(s.t);
+    t_nexts.push_back(s.t_next);
+    // The straight path through x: x = t x1_hat + (1 - t) x0_hat.
+    auto back = s.t * s.x1_hat() + (1 - s.t) * s.x0_hat();
+    max_hat_error = std::max(max_hat_error, (back - s.x).abs().max().item<double>());
+    return s.x + (s.t_next - s.t) * s.v;
+  }
+};
+
+}  // namespace
+
+TEST_CASE("FlowPrior::load: clear errors for missing, incomplete or foreign runs", "[flow]") {
+  TempDir t("prior_load");
+  auto missing = user_error_of([&] { FlowPrior::load((t.path / "nope").string()); });
+  CHECK(missing.find("does not exist") != std::string::npos);
+  fs::create_directories(t.path / "empty");
+  auto incomplete = user_error_of([&] { FlowPrior::load((t.path / "empty").string()); });
+  CHECK(incomplete.find("config.yaml' is missing") != std::string::npos);
+  write_prior_run(t.path / "ok");
+  fs::remove(t.path / "ok" / "checkpoints" / "final.pt");
+  CHECK(user_error_of([&] { FlowPrior::load((t.path / "ok").string()); }).find("final.pt") != std::string::npos);
+  write_prior_run(t.path / "ae", "motion_autoencoder");
+  CHECK(user_error_of([&] { FlowPrior::load((t.path / "ae").string()); }).find("not a flow prior") !=
+        std::string::npos);
+  write_prior_run(t.path / "good");
+  FlowPrior p = FlowPrior::load((t.path / "good").string());
+  CHECK(p.t_max() == 40);
+  CHECK(p.num_joints() == 22);
+  auto w = torch::randn({2, 5, 22, 3});
+  CHECK(torch::allclose(p.denormalize(p.normalize(w)), w, 1e-5, 1e-5));
+}
+
+TEST_CASE("classifier-free guidance: scale 1 is the conditional, 0 the unconditional velocity", "[flow]") {
+  TempDir t("prior_cfg");
+  write_prior_run(t.path);
+  FlowPrior p = FlowPrior::load(t.path.string());
+  torch::manual_seed(6);
+  auto x = torch::randn({3, 20, 22, 3});
+  auto mask = torch::ones({3, 20}, torch::kBool);
+  mask[1].narrow(0, 11, 9).fill_(false);
+  auto tt = torch::tensor({0.1f, 0.5f, 0.9f});
+  auto text = p.encode_texts({"a person walks forward", "a person jumps", "walks"});
+  torch::NoGradGuard ng;
+  auto vc = p.raw_velocity(x, tt, text, mask);
+  auto vu = p.raw_velocity(x, tt, p.null_texts(3), mask);
+  CHECK_FALSE(torch::allclose(vc, vu, 1e-4, 1e-4));  // the text matters
+  CHECK(torch::allclose(p.velocity(x, tt, text, mask, 1.0), vc, 1e-4, 1e-5));
+  CHECK(torch::allclose(p.velocity(x, tt, text, mask, 0.0), vu, 1e-4, 1e-5));
+  CHECK(torch::allclose(p.velocity(x, tt, text, mask, 2.5), vu + 2.5 * (vc - vu), 1e-4, 1e-4));
+  // A scalar t broadcasts over the batch.
+  CHECK(torch::allclose(p.velocity(x, torch::tensor(0.5f), text, mask, 1.0),
+                        p.raw_velocity(x, torch::full({3}, 0.5f), text, mask), 1e-4, 1e-5));
+}
+
+TEST_CASE("Euler sampler: time grid, step hook, seeding and lengths", "[flow]") {
+  TempDir t("prior_euler");
+  write_prior_run(t.path);
+  FlowPrior p = FlowPrior::load(t.path.string());
+  FlowSamplerConfig cfg;
+  CHECK(cfg.steps == 99);  // reference-facts §3: 100 grid points
+  CHECK(cfg.cfg_scale == 2.5);
+  cfg.steps = 5;
+  cfg.batch_size = 2;
+  std::vector<std::string> caps = {"a person walks", "a person jumps", "forward"};
+  std::vector<int> lens = {40, 13, 27};
+  RecordingStepper rec;
+  auto r = sample_flow(p, caps, lens, cfg, 9, &rec);
+  CHECK(rec.begins == 2);  // batches of 2 + 1
+  REQUIRE(rec.ts.size() == 10);
+  CHECK(rec.ts[0] == 0.0);
+  CHECK(rec.ts[1] == Approx(0.2));
+  CHECK(rec.t_nexts[4] == 1.0);
+  CHECK(rec.max_hat_error < 1e-4);
+  CHECK(r.world.sizes().vec() == std::vector<int64_t>{3, 40, 22, 3});
+  CHECK(torch::isfinite(r.world).all().item<bool>());
+  CHECK(r.world[1].narrow(0, 13, 27).abs().max().item<double>() == 0.0);  // padding is zero
+  // The default (Euler) path equals the recorded one; batching does not change samples.
+  cfg.batch_size = 3;
+  auto euler = sample_flow(p, caps, lens, cfg, 9);
+  CHECK(torch::allclose(euler.world, r.world, 1e-4, 1e-4));
+  auto other = sample_flow(p, caps, lens, cfg, 10);
+  CHECK_FALSE(torch::allclose(other.world, r.world, 1e-3, 1e-3));
+  CHECK(user_error_of([&] { sample_flow(p, {"a"}, {41}, cfg, 1); }).find("1..40") != std::string::npos);
+
+  MotionSet m = to_motion_set(p, r, caps, {"s0", "s1", "s2"});
+  m.check("samples");
+  CHECK(m.t_max == 40);
+  CHECK(m.splits[0] == "sample");
+  CHECK(m.captions[2][0] == "forward");
+}
+
+TEST_CASE("non-finite network output is a UserError, never a file", "[flow]") {
+  TempDir t("prior_nan");
+  write_prior_run(t.path);
+  FlowPrior p = FlowPrior::load(t.path.string());
+  {
+    torch::NoGradGuard ng;
+    p.net()->transformer->head->bias.fill_(std::numeric_limits<float>::quiet_NaN());
+  }
+  FlowSamplerConfig cfg;
+  cfg.steps = 3;
+  auto msg = user_error_of([&] { sample_flow(p, {"a person walks"}, {10}, cfg, 1); });
+  CHECK(msg.find("non-finite") != std::string::npos);
+}
+
+namespace {
+double csv_column(const std::string& header, const std::string& row, const std::string& name) {
+  std::stringstream hs(header), rs(row);
+  std::string h, v;
+  while (std::getline(hs, h, ',') && std::getline(rs, v, ','))
+    if (h == name) return std::stod(v);
+  return NAN;
+}
+}  // namespace
+
+TEST_CASE("motionctl train flow_tiny then motionctl sample writes plausible motions", "[flow][slow]") {
+  TempDir t("flow_e2e");
+  std::string data = (t.path / "fx.h5").string();
+  REQUIRE(run_motionctl(fmt::format("fixture configs/data/smoke.yaml output={} fixture.num_clips=60", data)).exit_code ==
+          0);
+  auto tr = run_motionctl(fmt::format(
+      "train configs/prior/flow_tiny.yaml data.path={} optim.steps=150 optim.warmup=20 run.log_every=10 "
+      "run.checkpoint_every=50 run.root={} run.name=tiny run.threads=2",
+      data, t.path.string()));
+  INFO(tr.output);
+  REQUIRE(tr.exit_code == 0);
+  fs::path run = t.path / "prior" / "tiny";
+  for (auto f : {"checkpoints/final.pt", "outputs/vocab.txt", "outputs/prior_meta.yaml", "DONE"})
+    CHECK(fs::exists(run / f));
+  std::stringstream metrics(slurp(run / "metrics.csv"));
+  std::string header, first, line, last;
+  std::getline(metrics, header);
+  std::getline(metrics, first);
+  while (std::getline(metrics, line))
+    if (!line.empty()) last = line;
+  double l0 = csv_column(header, first, "loss"), l1 = csv_column(header, last, "loss");
+  INFO("loss " << l0 << " -> " << l1);
+  CHECK(l1 < 0.8 * l0);
+  CHECK(slurp(run / "summary.csv").find("val_fm") != std::string::npos);
+
+  std::string out = (t.path / "samples.h5").string();
+  auto s = run_motionctl(fmt::format("sample configs/sample/t2m_smoke.yaml prior.run_dir={} output={} "
+                                     "texts.num_samples=4 sampler.steps=20 run.threads=2",
+                                     run.string(), out));
+  INFO(s.output);
+  REQUIRE(s.exit_code == 0);
+  MotionSet m = read_motion_file(out);
+  REQUIRE(m.size() == 4);
+  CHECK(m.provenance.generator == "motionctl sample");
+  CHECK(m.provenance.seed == 11);
+  CHECK(m.provenance.config.find("run_dir: " + run.string()) != std::string::npos);
+  MotionSet src = read_motion_file(data);
+  auto test_idx = src.indices_of_split("test");
+  for (size_t i = 0; i < m.size(); ++i) {
+    CHECK(m.splits[i] == "sample");
+    CHECK(m.captions[i][0] == src.captions[test_idx[i]][0]);
+    CHECK(m.lengths[i] == src.lengths[test_idx[i]]);
+  }
+  // Bone lengths: a barely trained prior is rough, but its bones must be of human scale.
+  const Skeleton& sk = m.skeleton;
+  double ratio_sum = 0;
+  int n = 0;
+  for (size_t i = 0; i < m.size(); ++i)
+    for (int f = 0; f < m.lengths[i]; ++f)
+      for (int j = 1; j < sk.num_joints(); ++j) {
+        const float *a = m.at(i, f, j), *b = m.at(i, f, sk.parents[j]);
+        REQUIRE(std::isfinite(a[0]));
+        double d = std::sqrt((a[0] - b[0]) * (a[0] - b[0]) + (a[1] - b[1]) * (a[1] - b[1]) + (a[2] - b[2]) * (a[2] - b[2]));
+        ratio_sum += d / sk.bone_lengths[j];
+        ++n;
+      }
+  double mean_ratio = ratio_sum / n;
+  INFO("mean bone length / skeleton bone length = " << mean_ratio);
+  CHECK(mean_ratio > 0.5);
+  CHECK(mean_ratio < 2.5);
+
+}
+
+TEST_CASE("motionctl sample: a missing prior run directory is exit 2 with a clear message", "[flow]") {
+  TempDir t("flow_bad");
+  auto bad = run_motionctl(fmt::format("sample configs/sample/t2m_smoke.yaml prior.run_dir={}/nope output={}/x.h5",
+                                       t.path.string(), t.path.string()));
+  CHECK(bad.exit_code == 2);
+  CHECK(bad.output.find("does not exist") != std::string::npos);
+  CHECK(bad.output.find("nope") != std::string::npos);
+  CHECK_FALSE(fs::exists(t.path / "x.h5"));
+  auto neither = run_motionctl(fmt::format("sample configs/sample/t2m_smoke.yaml prior.config=\\\"\\\" output={}/x.h5",
+                                           t.path.string()));
+  CHECK(neither.exit_code == 2);
+  CHECK(neither.output.find("prior.run_dir") != std::string::npos);
+}
