@@ -3,6 +3,7 @@
 
 #include <yaml-cpp/yaml.h>
 
+#include "cli/sample_job.h"
 #include "core/error.h"
 #include "data/fixture/fixture.h"
 #include "train/trainer.h"
@@ -13,6 +14,7 @@ const std::vector<JobKind>& job_kinds() {
   static const std::vector<JobKind> kinds = {
       {"train", "model", [] { return std::make_unique<TrainJobConfig>(); }},
       {"fixture", "fixture", [] { return std::make_unique<FixtureJobConfig>(); }},
+      {"sample", "sampler", [] { return std::make_unique<SampleJobConfig>(); }},
   };
   return kinds;
 }

@@ -14,6 +14,7 @@ int main(int argc, char** argv) {
   mc::add_sweep_command(app);
   mc::add_config_command(app);
   mc::add_bench_command(app);
+  mc::add_sample_command(app);
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
