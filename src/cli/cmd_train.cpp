@@ -1,10 +1,12 @@
-// `motionctl train CONFIG [key=value ...]` and `motionctl sweep CONFIG key=a,b ...`.
+// `motionctl train CONFIG [key=value ...]`, `motionctl sweep CONFIG key=a,b ...`
+// and run_train (cli/train_job.h), which other commands use to get trained parts.
 #include <filesystem>
 #include <iostream>
 
 #include "cli/commands.h"
 #include "cli/fixture_job.h"
 #include "cli/jobs.h"
+#include "cli/train_job.h"
 #include "core/atomic_file.h"
 #include "core/error.h"
 #include "data/skeleton.h"
@@ -25,7 +27,7 @@ static void ensure_training_data(const TrainJobConfig& job) {
   build_fixture(resolve_data_path(job.data.fixture), {fmt::format("output={}", job.data.path)}, false);
 }
 
-static TrainResult run_train(const std::string& file, const std::vector<std::string>& overrides, int64_t stop_after) {
+TrainResult run_train(const std::string& file, const std::vector<std::string>& overrides, int64_t stop_after) {
   auto job = load_job<TrainJobConfig>(file, overrides);
   ensure_training_data(job);
   std::string name = fmt::format("{}-{}", stem_of(file), config_hash(job));

@@ -4,6 +4,7 @@
 #include <yaml-cpp/yaml.h>
 
 #include "core/error.h"
+#include "cli/eval_job.h"
 #include "data/fixture/fixture.h"
 #include "train/trainer.h"
 
@@ -13,6 +14,7 @@ const std::vector<JobKind>& job_kinds() {
   static const std::vector<JobKind> kinds = {
       {"train", "model", [] { return std::make_unique<TrainJobConfig>(); }},
       {"fixture", "fixture", [] { return std::make_unique<FixtureJobConfig>(); }},
+      {"eval", "protocol", [] { return std::make_unique<EvalJobConfig>(); }},
   };
   return kinds;
 }

@@ -29,7 +29,7 @@ struct RunConfig : Config {
     v("name", name, "run name (default: <config stem>-<config hash>)");
     v("root", root, "directory holding all runs");
     v("seed", seed, "random seed of the run (stored in the run directory)");
-    v("threads", threads, "torch CPU threads; 0 = all cores", at_least(0));
+    v("threads", threads, "torch CPU threads; 0 = all cores (or $OMP_NUM_THREADS when set)", at_least(0));
     v("device", device, "torch device: cpu, cuda, cuda:N");
     v("force", force, "redo a finished run from scratch");
     v("log_every", log_every, "steps between log lines and metrics.csv rows", at_least(1));
