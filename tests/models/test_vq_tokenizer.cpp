@@ -10,6 +10,7 @@
 #include "models/vq_tokenizer.h"
 #include "test_util.h"
 #include "train/motion_dataset.h"
+#include "train/trainer.h"
 
 using namespace mc;
 using namespace mc::test;
@@ -283,4 +284,42 @@ TEST_CASE("vq_tiny trains end to end, beats the mean pose and loads back", "[tok
     std::ofstream(other / "config.yaml") << cfg;
   }
   CHECK_THROWS_AS(load_vq_tokenizer(other.string()), UserError);
+}
+
+TEST_CASE("tokenizer training resumes exactly: codebook buffers and reset draws are checkpointed", "[tokenizer][slow]") {
+  TempDir t("vqres");
+  std::string data = (t.path / "fx.h5").string();
+  REQUIRE(run_motionctl(fmt::format("fixture configs/data/smoke.yaml output={} fixture.num_clips=40", data)).exit_code ==
+          0);
+  auto job_for = [&](const std::string& root) {
+    std::vector<std::string> ov = {"data.path=" + data, "run.root=" + root, "run.name=r", "run.threads=1",
+                                   "optim.steps=40", "run.log_every=5", "run.checkpoint_every=10",
+                                   "model.width=24", "model.code_dim=16", "model.codebook_size=64",
+                                   "optim.batch_size=8"};
+    auto job = std::make_unique<TrainJobConfig>();
+    parse_config(compose_config(std::string(MOTIONCTL_SOURCE_DIR) + "/configs/tokenizer/vq_tiny.yaml", ov), *job);
+    return std::make_pair(std::move(job), ov);
+  };
+  auto [ja, ova] = job_for((t.path / "a").string());
+  auto ra = train(*ja, ova, "r");
+  auto [jb, ovb] = job_for((t.path / "b").string());
+  auto first = train(*jb, ovb, "r", 15);  // stops at step 15; last.pt holds step 10
+  REQUIRE_FALSE(fs::exists(first.run_dir / "DONE"));
+  auto [jc, ovc] = job_for((t.path / "b").string());
+  auto rb = train(*jc, ovc, "r");
+  REQUIRE(fs::exists(rb.run_dir / "DONE"));
+  auto strip_wall = [](const std::string& csv) {
+    std::stringstream in(csv), out;
+    std::string line;
+    while (std::getline(in, line)) {
+      auto a = line.find(','), b = line.find(',', a + 1);
+      out << line.substr(0, a) << line.substr(b) << "\n";  // drop column 2 (wall_time)
+    }
+    return out.str();
+  };
+  std::string ma = slurp(ra.run_dir / "metrics.csv"), mb = slurp(rb.run_dir / "metrics.csv");
+  REQUIRE(ma.find("wall_time") != std::string::npos);
+  CHECK(strip_wall(ma) == strip_wall(mb));
+  CHECK(ra.summary.at("test_mpjpe_m") == rb.summary.at("test_mpjpe_m"));
+  CHECK(ra.summary.at("test_perplexity") == rb.summary.at("test_perplexity"));
 }
