@@ -56,14 +56,16 @@ std::map<std::string, double> t2m_metrics(const EvalEmbeddings& e, const EvalPro
   // Multimodality: captions with several generations.
   std::map<std::string, std::vector<int>> by_caption;
   for (int i = 0; i < n; ++i) by_caption[e.captions[i]].push_back(i);
-  std::vector<Embeddings> groups;
+  // Groups are cut to the smallest group size (the metric needs equal sizes).
   int smallest = 0;
   for (auto& [_, rows] : by_caption)
-    if (rows.size() >= 2) {
-      Embeddings g(rows.size(), e.motion.cols());
-      for (size_t k = 0; k < rows.size(); ++k) g.row(k) = e.motion.row(rows[k]);
+    if (rows.size() >= 2) smallest = smallest == 0 ? static_cast<int>(rows.size()) : std::min<int>(smallest, rows.size());
+  std::vector<Embeddings> groups;
+  for (auto& [_, rows] : by_caption)
+    if (smallest > 0 && static_cast<int>(rows.size()) >= smallest) {
+      Embeddings g(smallest, e.motion.cols());
+      for (int k = 0; k < smallest; ++k) g.row(k) = e.motion.row(rows[k]);
       groups.push_back(g);
-      smallest = smallest == 0 ? static_cast<int>(rows.size()) : std::min<int>(smallest, rows.size());
     }
   if (!groups.empty()) out["multimodality"] = multimodality(groups, std::min(p.multimodality_pairs, smallest), rng);
   return out;
