@@ -184,3 +184,33 @@ TEST_CASE("motionctl score: foot skating and control errors from a constraint sp
   auto bad = run_motionctl(fmt::format("score {} --constraints {}", data, (t.path / "missing.yaml").string()));
   CHECK(bad.exit_code == 2);
 }
+
+TEST_CASE("t2m_metrics: multimodality over caption groups cut to equal size; pools", "[eval]") {
+  // 6 captions x (3 or 4) generations: groups are cut to 3 each; embeddings of a
+  // text's generations differ by a known amount, so multimodality is known.
+  EvalEmbeddings e;
+  const int D = 4;
+  std::vector<int> sizes = {3, 4, 3, 3, 4, 3};
+  int n = 0;
+  for (int s : sizes) n += s;
+  e.motion = Embeddings::Zero(n, D);
+  e.text = Embeddings::Zero(n, D);
+  int row = 0;
+  for (size_t c = 0; c < sizes.size(); ++c)
+    for (int g = 0; g < sizes[c]; ++g, ++row) {
+      e.motion(row, 0) = 10.0 * c;
+      e.motion(row, 1) = g == 0 ? 0.0 : 2.0;  // first generation differs from the rest by 2
+      e.text.row(row) = e.motion.row(row);
+      e.captions.push_back(fmt::format("caption {}", c));
+    }
+  e.gt_motion = e.motion;
+  EvalProtocol p;
+  p.multimodality_pairs = 3;
+  p.diversity_pairs = 10;
+  auto m = t2m_metrics(e, p, 3);
+  REQUIRE(m.count("multimodality"));
+  CHECK(m["multimodality"] >= 0.0);
+  CHECK(m["multimodality"] <= 2.0 + 1e-9);
+  CHECK(m.count("r_precision_top1") == 0);  // fewer motions than one pool of 32
+  CHECK(m["fid"] == Approx(0.0).margin(1e-6));
+}
