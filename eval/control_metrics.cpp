@@ -45,6 +45,16 @@ std::vector<double> controlled_entry_errors(const ControlSample& s) {
 
 ControlMetrics control_metrics(const std::vector<ControlSample>& samples, const ControlOptions& opt) {
   if (samples.empty()) fail("control_metrics: no samples");
+  std::vector<std::vector<double>> errors;
+  for (size_t i = 0; i < samples.size(); ++i) {
+    check_sample(samples[i], i);
+    errors.push_back(controlled_entry_errors(samples[i]));
+  }
+  return control_metrics_from_errors(errors, opt);
+}
+
+ControlMetrics control_metrics_from_errors(const std::vector<std::vector<double>>& errors, const ControlOptions& opt) {
+  if (errors.empty()) fail("control_metrics: no samples");
   if (opt.thresholds.empty()) fail("control_metrics: no thresholds");
   for (double th : opt.thresholds)
     if (!(th >= 0.0) || !std::isfinite(th)) fail("control_metrics: threshold {} is not a finite value >= 0", th);
@@ -53,9 +63,8 @@ ControlMetrics control_metrics(const std::vector<ControlSample>& samples, const 
   r.rates.resize(opt.thresholds.size());
   for (size_t k = 0; k < opt.thresholds.size(); ++k) r.rates[k].threshold = opt.thresholds[k];
   double avg_sum = 0.0, pooled_sum = 0.0;
-  for (size_t i = 0; i < samples.size(); ++i) {
-    check_sample(samples[i], i);
-    const std::vector<double> err = controlled_entry_errors(samples[i]);
+  for (size_t i = 0; i < errors.size(); ++i) {
+    const std::vector<double>& err = errors[i];
     if (err.empty()) {  // nothing to score: excluded from every average, counted
       ++r.samples_without_control;
       continue;
@@ -76,7 +85,7 @@ ControlMetrics control_metrics(const std::vector<ControlSample>& samples, const 
       r.rates[k].loc_err += static_cast<double>(over) / err.size();  // per sample ...
     }
   }
-  if (r.samples == 0) fail("control_metrics: none of the {} samples has a controlled entry", samples.size());
+  if (r.samples == 0) fail("control_metrics: none of the {} samples has a controlled entry", errors.size());
   for (auto& rate : r.rates) {  // ... then the mean over samples
     rate.traj_err /= r.samples;
     rate.loc_err /= r.samples;

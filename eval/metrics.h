@@ -152,6 +152,10 @@ struct ControlMetrics {
 // Errors of the controlled entries of one sample, in (frame, joint) order.
 std::vector<double> controlled_entry_errors(const ControlSample& s);
 ControlMetrics control_metrics(const std::vector<ControlSample>& samples, const ControlOptions& opt = {});
+// The same metrics from precomputed per-sample entry errors (e.g. residuals of a
+// compiled constraint spec, eval/observation_errors.h).
+ControlMetrics control_metrics_from_errors(const std::vector<std::vector<double>>& errors,
+                                           const ControlOptions& opt = {});
 
 // ---------------------------------------------------------------------------
 // 3. Foot skating ratio (reference-facts §5)

@@ -3,6 +3,13 @@
 
 #include "bench/bench.h"
 #include "cli/commands.h"
+#include "cli/train_job.h"
+#include "core/error.h"
+#include "data/skeleton.h"
+#include "eval/evaluation.h"
+
+#include <chrono>
+#include <thread>
 
 namespace mc {
 
@@ -21,6 +28,41 @@ void add_bench_command(CLI::App& app) {
           "WARNING: below {:.0f} GFLOP/s: torch is probably using Debian's reference BLAS. Install "
           "libopenblas0-openmp (make deps does) and check `update-alternatives --display libblas.so.3-x86_64-linux-gnu`.\n",
           kMinHealthyGflops);
+  });
+
+  auto* ev = cmd->add_subcommand("eval", "time to evaluate N motions (embedding + every metric, one replication)");
+  struct EvalArgs {
+    std::string evaluator = "configs/eval/evaluator_smoke.yaml";
+    std::string data = "data/fixture_smoke.h5";
+    int count = 1000;
+    int threads = 0;
+  };
+  auto ea = std::make_shared<EvalArgs>();
+  ev->add_option("--evaluator", ea->evaluator, "evaluator training config (trained if missing)");
+  ev->add_option("--data", ea->data, "motion file whose clips are tiled up to --count motions");
+  ev->add_option("--count", ea->count, "motions to evaluate")->check(CLI::PositiveNumber);
+  ev->add_option("--threads", ea->threads, "torch threads (0 = all cores)")->check(CLI::NonNegativeNumber);
+  ev->callback([ea] {
+    TrainResult r = run_train(resolve_data_path(ea->evaluator), {});
+    T2MEvaluator evaluator = T2MEvaluator::load(r.run_dir.string());
+    torch::set_num_threads(ea->threads > 0 ? ea->threads : static_cast<int>(std::max(1u, std::thread::hardware_concurrency())));
+    MotionSet all = read_motion_file(resolve_data_path(ea->data));
+    std::vector<size_t> idx;
+    for (int i = 0; i < ea->count; ++i) idx.push_back(i % all.size());
+    MotionSet motions = all.subset(idx);
+    MotionSet reference = all.subset(all.indices_of_split("test"));
+    auto t0 = std::chrono::steady_clock::now();
+    EvalEmbeddings e = embed_for_eval(evaluator, reference, ea->data, motions, ea->data);
+    auto t1 = std::chrono::steady_clock::now();
+    EvalProtocol p;
+    auto m = t2m_metrics(e, p, 0);
+    auto free = evaluator_free_metrics(motions, ea->data, p, "", nullptr);
+    auto t2 = std::chrono::steady_clock::now();
+    double embed_s = std::chrono::duration<double>(t1 - t0).count();
+    double metric_s = std::chrono::duration<double>(t2 - t1).count();
+    std::cout << fmt::format(
+        "evaluate {} motions (+{} reference) at {} thread(s): {:.2f} s total = {:.2f} s embedding + {:.3f} s metrics\n",
+        ea->count, reference.size(), torch::get_num_threads(), embed_s + metric_s, embed_s, metric_s);
   });
 }
 

@@ -1,4 +1,5 @@
-// `motionctl train CONFIG [key=value ...]` and `motionctl sweep CONFIG key=a,b ...`.
+// `motionctl train CONFIG [key=value ...]`, `motionctl sweep CONFIG key=a,b ...`
+// and run_train (cli/train_job.h), which other commands use to get trained parts.
 #include <filesystem>
 #include <iostream>
 

@@ -9,4 +9,5 @@ void add_sweep_command(CLI::App& app);
 void add_config_command(CLI::App& app);
 void add_bench_command(CLI::App& app);
 void add_sample_command(CLI::App& app);
+void add_eval_commands(CLI::App& app);  // eval, score
 }  // namespace mc

@@ -5,6 +5,7 @@
 
 #include "cli/sample_job.h"
 #include "core/error.h"
+#include "cli/eval_job.h"
 #include "data/fixture/fixture.h"
 #include "train/trainer.h"
 
@@ -15,6 +16,7 @@ const std::vector<JobKind>& job_kinds() {
       {"train", "model", [] { return std::make_unique<TrainJobConfig>(); }},
       {"fixture", "fixture", [] { return std::make_unique<FixtureJobConfig>(); }},
       {"sample", "sampler", [] { return std::make_unique<SampleJobConfig>(); }},
+      {"eval", "protocol", [] { return std::make_unique<EvalJobConfig>(); }},
   };
   return kinds;
 }

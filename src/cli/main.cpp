@@ -1,12 +1,17 @@
 // motionctl: the command-line entry point. Subcommands are thin: parse, call, print.
 // Exit codes: 0 ok, 2 bad input (config, files, values), 1 internal error.
 #include <CLI/CLI.hpp>
+#include <cstdlib>
 #include <iostream>
 
 #include "cli/commands.h"
 #include "core/error.h"
 
 int main(int argc, char** argv) {
+  // OpenMP threads spin while waiting by default; when the cores are shared
+  // (CI, parallel builds, several runs) that turns a 6 it/s loop into 0.1 it/s.
+  // Must be set before the first parallel region; a user's setting wins.
+  ::setenv("OMP_WAIT_POLICY", "PASSIVE", 0);
   CLI::App app{"motionctl: spatially controlled human motion generation (ProjFlow, AnchorRoute)"};
   app.require_subcommand(1);
   mc::add_fixture_command(app);
@@ -15,6 +20,7 @@ int main(int argc, char** argv) {
   mc::add_config_command(app);
   mc::add_bench_command(app);
   mc::add_sample_command(app);
+  mc::add_eval_commands(app);
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {

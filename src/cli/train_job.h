@@ -1,5 +1,6 @@
-// Training a job config the way `motionctl train` does (builds missing fixture
-// data, names the run <config stem>-<hash>): shared by train, sweep and sample.
+// Running a training config the way `motionctl train` does: build missing data,
+// name the run <config stem>-<hash>, train or resume or skip. Other commands use
+// it to get a trained component (evaluator, prior, tokenizer) on demand.
 #pragma once
 #include <string>
 #include <vector>
@@ -8,6 +9,7 @@
 
 namespace mc {
 
-TrainResult run_train(const std::string& file, const std::vector<std::string>& overrides, int64_t stop_after = 0);
+TrainResult run_train(const std::string& config_file, const std::vector<std::string>& overrides,
+                      int64_t stop_after = 0);
 
 }  // namespace mc

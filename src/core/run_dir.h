@@ -29,15 +29,16 @@ struct RunConfig : Config {
     v("name", name, "run name (default: <config stem>-<config hash>)");
     v("root", root, "directory holding all runs");
     v("seed", seed, "random seed of the run (stored in the run directory)");
-    v("threads", threads, "torch CPU threads; 0 = all cores", at_least(0));
-    v("device", device, "torch device: cpu, cuda, cuda:N");
+    v("threads", threads, "torch CPU threads; 0 = all cores (or $OMP_NUM_THREADS when set)", at_least(0));
+    v("device", device, "torch device: cpu, cuda, cuda:N",
+      Check<std::string>{[](const std::string& d) {
+                            return d == "cpu" || d.rfind("cuda", 0) == 0 ? std::string()
+                                                                         : std::string("must be cpu, cuda or cuda:N");
+                          },
+                          "cpu|cuda|cuda:N"});
     v("force", force, "redo a finished run from scratch");
     v("log_every", log_every, "steps between log lines and metrics.csv rows", at_least(1));
     v("checkpoint_every", checkpoint_every, "steps between checkpoints", at_least(1));
-  }
-  std::string validate() const override {
-    if (device != "cpu" && device.rfind("cuda", 0) != 0) return "device must be cpu, cuda or cuda:N";
-    return "";
   }
 };
 

@@ -3,6 +3,7 @@
 #include "train/trainer.h"
 
 #include <chrono>
+#include <cstdlib>
 #include <cmath>
 #include <random>
 #include <thread>
@@ -44,7 +45,14 @@ double scheduled_lr(const OptimConfig& o, int64_t step) {
 }
 
 torch::Device setup_torch(const RunConfig& run) {
-  int threads = run.threads > 0 ? run.threads : static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
+  // 0 = all cores, unless OMP_NUM_THREADS says otherwise (ctest runs tests in
+  // parallel with OMP_NUM_THREADS=1: oversubscribed cores make torch ~50x slower).
+  int threads = run.threads;
+  if (threads <= 0) {
+    const char* env = std::getenv("OMP_NUM_THREADS");
+    threads = env && std::atoi(env) > 0 ? std::atoi(env)
+                                        : static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
+  }
   torch::set_num_threads(threads);
   torch::manual_seed(static_cast<uint64_t>(run.seed));
   try {

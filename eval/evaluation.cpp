@@ -1,0 +1,152 @@
+// Evaluation protocol: embeddings, one replication of the T2M metrics,
+// evaluator-free metrics, and the CSV/HDF5 result files.
+#include "eval/evaluation.h"
+
+#include <H5Cpp.h>
+
+#include <algorithm>
+#include <numeric>
+#include <random>
+
+#include "control/constraint_spec.h"
+#include "control/linear_observation.h"
+#include "core/atomic_file.h"
+#include "core/error.h"
+#include "eval/observation_errors.h"
+
+namespace mc {
+
+EvalEmbeddings embed_for_eval(const T2MEvaluator& ev, const MotionSet& reference, const std::string& reference_source,
+                              const MotionSet& motions, const std::string& motions_source) {
+  EvalEmbeddings e;
+  e.gt_motion = ev.embed_motions(reference, reference_source);
+  e.motion = ev.embed_motions(motions, motions_source);
+  for (size_t i = 0; i < motions.size(); ++i) e.captions.push_back(motions.captions[i].at(0));
+  e.text = ev.embed_texts(e.captions);
+  return e;
+}
+
+std::map<std::string, double> t2m_metrics(const EvalEmbeddings& e, const EvalProtocol& p, uint64_t seed) {
+  const int n = static_cast<int>(e.motion.rows());
+  if (n < 2) fail("evaluation needs at least 2 motions, got {}", n);
+  std::mt19937_64 rng(seed);
+  // Each replication draws fresh R-precision pools (a permutation of the pairs).
+  std::vector<int> perm(n);
+  std::iota(perm.begin(), perm.end(), 0);
+  for (int i = n - 1; i > 0; --i) std::swap(perm[i], perm[uniform_index(rng, i + 1)]);
+  Embeddings text(n, e.text.cols()), motion(n, e.motion.cols());
+  for (int i = 0; i < n; ++i) {
+    text.row(i) = e.text.row(perm[i]);
+    motion.row(i) = e.motion.row(perm[i]);
+  }
+  std::map<std::string, double> out;
+  const int pool = p.r_precision_pool;
+  if (n >= pool) {
+    auto r = r_precision(text, motion, pool, 3);
+    out["r_precision_top1"] = r[0];
+    out["r_precision_top2"] = r[1];
+    out["r_precision_top3"] = r[2];
+    const int full = n / pool * pool;  // T2M's matching score covers the full pools only
+    out["matching"] = matching_score(text.topRows(full), motion.topRows(full));
+  } else {
+    out["matching"] = matching_score(text, motion);
+  }
+  if (e.gt_motion.rows() >= 2) out["fid"] = fid(motion, e.gt_motion);
+  out["diversity"] = diversity(motion, std::min(p.diversity_pairs, n), rng);
+  // Multimodality: captions with several generations.
+  std::map<std::string, std::vector<int>> by_caption;
+  for (int i = 0; i < n; ++i) by_caption[e.captions[i]].push_back(i);
+  // Groups are cut to the smallest group size (the metric needs equal sizes).
+  int smallest = 0;
+  for (auto& [_, rows] : by_caption)
+    if (rows.size() >= 2) smallest = smallest == 0 ? static_cast<int>(rows.size()) : std::min<int>(smallest, rows.size());
+  std::vector<Embeddings> groups;
+  for (auto& [_, rows] : by_caption)
+    if (smallest > 0 && static_cast<int>(rows.size()) >= smallest) {
+      Embeddings g(smallest, e.motion.cols());
+      for (int k = 0; k < smallest; ++k) g.row(k) = e.motion.row(rows[k]);
+      groups.push_back(g);
+    }
+  if (!groups.empty()) out["multimodality"] = multimodality(groups, std::min(p.multimodality_pairs, smallest), rng);
+  return out;
+}
+
+std::map<std::string, double> evaluator_free_metrics(const MotionSet& motions, const std::string& motions_source,
+                                                     const EvalProtocol& p, const std::string& constraints,
+                                                     const MotionSet* source) {
+  std::map<std::string, double> out;
+  if (motions.size() == 0) fail("{}: no motions to score", motions_source);
+  FootSkatingOptions fo;
+  fo.fps = motions.fps;
+  fo.padded_196 = p.foot_skating_padded_196;
+  std::vector<JointsView> clips;
+  for (size_t i = 0; i < motions.size(); ++i) clips.push_back(joints_view(motions, i));
+  out["foot_skating"] = foot_skating_ratio(clips, motions.skeleton, fo);
+  if (constraints.empty()) return out;
+
+  ConstraintSpec spec = load_constraint_spec(constraints);
+  if (source && source->size() != motions.size())
+    fail("constraint source has {} clips but {} has {}; give one source clip per motion", source->size(),
+         motions_source, motions.size());
+  std::vector<std::vector<double>> errors;
+  const int J = motions.num_joints();
+  for (size_t i = 0; i < motions.size(); ++i) {
+    const int T = motions.lengths[i];
+    std::vector<float> src;
+    if (source) {
+      if (source->lengths[i] < T)
+        fail("constraint source clip {} has {} frames, fewer than motion {} ({})", i, source->lengths[i], i, T);
+      src.assign(source->clip(i), source->clip(i) + static_cast<size_t>(T) * J * 3);
+    }
+    LinearObservation obs = compile(spec, T, motions.skeleton, source ? src.data() : nullptr);
+    errors.push_back(observation_entry_errors(obs, motions.clip(i)));
+  }
+  ControlOptions co;
+  co.thresholds = p.control_thresholds;
+  ControlMetrics cm = control_metrics_from_errors(errors, co);
+  for (auto& rate : cm.rates) {
+    out[fmt::format("traj_err@{}", rate.threshold)] = rate.traj_err;
+    out[fmt::format("loc_err@{}", rate.threshold)] = rate.loc_err;
+  }
+  out["avg_err"] = cm.avg_err;
+  out["control_error"] = cm.control_error;
+  return out;
+}
+
+void write_metric_results(const std::string& dir, const std::map<std::string, std::vector<double>>& values) {
+  std::string csv = "metric,mean,std,ci95,n\n";
+  for (auto& [k, v] : values) {
+    Replicated r = summarize(v);
+    csv += fmt::format("{},{:.8g},{:.8g},{:.8g},{}\n", k, r.mean, r.std, r.ci95, r.n);
+  }
+  write_file_atomic(fs::path(dir) / "metrics.csv", csv);
+
+  AtomicOutput out(fs::path(dir) / "metrics.h5");
+  {
+    H5::Exception::dontPrint();
+    H5::H5File f(out.tmp_path().string(), H5F_ACC_TRUNC);
+    H5::Group g = f.createGroup("replicates");
+    for (auto& [k, v] : values) {
+      hsize_t n = v.size();
+      H5::DataSpace space(1, &n);
+      auto ds = g.createDataSet(k, H5::PredType::NATIVE_DOUBLE, space);
+      ds.write(v.data(), H5::PredType::NATIVE_DOUBLE);
+      Replicated r = summarize(v);
+      H5::DataSpace scalar(H5S_SCALAR);
+      for (auto [name, val] : {std::pair<const char*, double>{"mean", r.mean}, {"std", r.std}, {"ci95", r.ci95}})
+        ds.createAttribute(name, H5::PredType::NATIVE_DOUBLE, scalar).write(H5::PredType::NATIVE_DOUBLE, &val);
+    }
+  }
+  out.commit();
+}
+
+std::string format_metric_table(const std::map<std::string, std::vector<double>>& values) {
+  std::string s = fmt::format("{:<22} {:>12} {:>12} {:>4}\n", "metric", "mean", "±95% CI", "n");
+  for (auto& [k, v] : values) {
+    Replicated r = summarize(v);
+    s += fmt::format("{:<22} {:>12.5f} {:>12.5f} {:>4}\n", k, r.mean, r.ci95, r.n);
+  }
+  return s;
+}
+
+}  // namespace mc
