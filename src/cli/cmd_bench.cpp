@@ -3,7 +3,7 @@
 
 #include "bench/bench.h"
 #include "cli/commands.h"
-#include "cli/train_job.h"
+#include "train/train_job.h"
 #include "core/error.h"
 #include "data/skeleton.h"
 #include "eval/evaluation.h"

@@ -7,7 +7,7 @@
 #include "cli/commands.h"
 #include "cli/eval_job.h"
 #include "cli/jobs.h"
-#include "cli/train_job.h"
+#include "train/train_job.h"
 #include "core/error.h"
 #include "core/run_dir.h"
 #include "data/skeleton.h"

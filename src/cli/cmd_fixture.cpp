@@ -4,7 +4,7 @@
 #include <iostream>
 
 #include "cli/commands.h"
-#include "cli/fixture_job.h"
+#include "data/fixture/fixture_build.h"
 #include "cli/jobs.h"
 #include "core/error.h"
 #include "data/fixture/fixture.h"
@@ -15,38 +15,6 @@
 
 namespace mc {
 namespace fs = std::filesystem;
-
-FixtureBuildResult build_fixture(const std::string& config_file, const std::vector<std::string>& overrides,
-                                 bool force) {
-  auto t0 = std::chrono::steady_clock::now();
-  auto job = load_job<FixtureJobConfig>(config_file, overrides);
-  std::string resolved = dump_config(job);
-  FixtureBuildResult r;
-  r.output = job.output;
-  if (!force && fs::exists(job.output)) {
-    try {
-      MotionSet old = read_motion_file(job.output);
-      if (old.provenance.generator == "motionctl fixture" && old.provenance.config == resolved) {
-        r.up_to_date = true;
-        r.clips = old.size();
-        return r;
-      }
-    } catch (const UserError&) {
-      // unreadable or foreign file: rebuild it
-    }
-  }
-  Skeleton skel = load_skeleton(job.skeleton);
-  MotionSet m = generate_fixture(job.fixture, skel);
-  // No timestamp: the same config and seed must give a byte-identical file.
-  m.provenance = Provenance{"motionctl fixture", MOTIONCTL_VERSION, job.fixture.seed, resolved, "deterministic"};
-  m.stats = compute_norm_stats(m);
-  m.vocab = TextVocab::build(m).words();
-  m.clear_padding();
-  write_motion_file(job.output, m);
-  r.clips = m.size();
-  r.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-  return r;
-}
 
 void add_fixture_command(CLI::App& app) {
   auto* cmd = app.add_subcommand("fixture", "build the synthetic motion dataset (deterministic in config and seed)");

@@ -6,7 +6,7 @@
 #include "cli/commands.h"
 #include "cli/jobs.h"
 #include "cli/sample_job.h"
-#include "cli/train_job.h"
+#include "train/train_job.h"
 #include "core/error.h"
 #include "core/run_dir.h"
 #include "train/trainer.h"

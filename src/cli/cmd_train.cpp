@@ -1,12 +1,12 @@
 // `motionctl train CONFIG [key=value ...]`, `motionctl sweep CONFIG key=a,b ...`
-// and run_train (cli/train_job.h), which other commands use to get trained parts.
+// and run_train (train/train_job.h), which other commands use to get trained parts.
 #include <filesystem>
 #include <iostream>
 
 #include "cli/commands.h"
-#include "cli/fixture_job.h"
+#include "data/fixture/fixture_build.h"
 #include "cli/jobs.h"
-#include "cli/train_job.h"
+#include "train/train_job.h"
 #include "core/atomic_file.h"
 #include "core/error.h"
 #include "data/skeleton.h"
@@ -16,23 +16,6 @@ namespace mc {
 namespace fs = std::filesystem;
 
 static std::string stem_of(const std::string& file) { return fs::path(file).stem().string(); }
-
-// Builds the training data from its fixture config when the file is missing.
-static void ensure_training_data(const TrainJobConfig& job) {
-  if (fs::exists(resolve_data_path(job.data.path))) return;
-  if (job.data.fixture.empty())
-    fail("data.path '{}' does not exist and data.fixture is empty; build it with `motionctl fixture` or point "
-         "data.path at a motion file",
-         job.data.path);
-  build_fixture(resolve_data_path(job.data.fixture), {fmt::format("output={}", job.data.path)}, false);
-}
-
-TrainResult run_train(const std::string& file, const std::vector<std::string>& overrides, int64_t stop_after) {
-  auto job = load_job<TrainJobConfig>(file, overrides);
-  ensure_training_data(job);
-  std::string name = fmt::format("{}-{}", stem_of(file), config_hash(job));
-  return train(job, overrides, name, stop_after);
-}
 
 void add_train_command(CLI::App& app) {
   auto* cmd = app.add_subcommand("train", "train a model from a YAML config (resumes; a finished run is a no-op)");

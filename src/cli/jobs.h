@@ -20,12 +20,4 @@ const std::vector<JobKind>& job_kinds();
 const JobKind& job_kind(const std::string& name);         // UserError with did-you-mean
 const JobKind& detect_job_kind(const ConfigSource& src);  // UserError if no marker matches
 
-// Composes FILE + overrides and parses it as `kind`.
-template <class T>
-T load_job(const std::string& file, const std::vector<std::string>& overrides) {
-  T cfg;
-  parse_config(compose_config(file, overrides), cfg);
-  return cfg;
-}
-
 }  // namespace mc

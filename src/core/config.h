@@ -163,6 +163,15 @@ ConfigSource config_from_string(const std::string& yaml, const std::string& name
 // Parses `src` into `cfg`: types, ranges, unknown keys ("did you mean"), all as
 // UserError naming the file and key.
 void parse_config(const ConfigSource& src, Config& cfg);
+
+// Composes FILE + overrides and parses it as a T.
+template <class T>
+T load_job(const std::string& file, const std::vector<std::string>& overrides) {
+  T cfg;
+  parse_config(compose_config(file, overrides), cfg);
+  return cfg;
+}
+
 // Resolved config as YAML (every field, defaults included); parses back to the same config.
 std::string dump_config(Config& cfg);
 // Human-readable reference of every field (name, type, default, rule, help).

@@ -1,0 +1,47 @@
+// Anything that turns control tasks into motions: ProjFlow, its baselines, the
+// unconstrained prior, AnchorRoute and its variants. Picked by `generator: {type: ...}`.
+#pragma once
+#include <cstdint>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include <torch/torch.h>
+
+#include "control/control_task.h"
+#include "core/config.h"
+
+namespace mc {
+
+struct GeneratedMotions {
+  torch::Tensor world;       // [N, T, J, 3] float, world metres, CPU, zero past each length
+  std::vector<int> lengths;  // [N] = the tasks' lengths
+  double seconds = 0;        // wall time of generation for all N (excludes loading/training)
+  std::vector<std::string> notes;  // e.g. "trainable parameters: 1.2M", shown in run logs
+};
+
+struct GeneratorContext {
+  torch::Device device = torch::kCPU;
+};
+
+class MotionGenerator {
+ public:
+  virtual ~MotionGenerator() = default;
+  // One motion per task, in task order. Deterministic in (tasks, seed). UserError on
+  // bad tasks (e.g. a constraint the method cannot express) or a non-finite result.
+  virtual GeneratedMotions generate(const std::vector<ControlTask>& tasks, uint64_t seed) = 0;
+  virtual std::string describe() const = 0;  // one line for logs: method and key settings
+};
+
+// Base of every `generator:` component type: the config builds the generator,
+// training what it needs on demand (run_train, train/train_job.h).
+struct GeneratorConfig : Config {
+  virtual std::unique_ptr<MotionGenerator> make(const GeneratorContext& ctx) const = 0;
+};
+
+#define MC_REGISTER_GENERATOR(TYPE, CONFIG, HELP) \
+  static ::mc::ComponentRegistration<CONFIG> mc_generator_registration_##CONFIG("generator", TYPE, HELP)
+
+const GeneratorConfig& as_generator(const Component& c);
+
+}  // namespace mc
