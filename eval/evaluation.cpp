@@ -113,6 +113,36 @@ std::map<std::string, double> evaluator_free_metrics(const MotionSet& motions, c
   return out;
 }
 
+// Metric keys may hold '/' (task groups such as "control_error@family=root3d/K=8"),
+// which HDF5 reads as a path: it is stored as '|'.
+static std::string h5_metric_name(std::string k) {
+  std::replace(k.begin(), k.end(), '/', '|');
+  return k;
+}
+
+std::map<std::string, std::vector<double>> read_metric_results(const std::string& dir) {
+  const std::string path = (fs::path(dir) / "metrics.h5").string();
+  std::map<std::string, std::vector<double>> out;
+  try {
+    H5::Exception::dontPrint();
+    H5::H5File f(path, H5F_ACC_RDONLY);
+    H5::Group g = f.openGroup("replicates");
+    for (hsize_t i = 0; i < g.getNumObjs(); ++i) {
+      std::string name = g.getObjnameByIdx(i);
+      H5::DataSet ds = g.openDataSet(name);
+      hsize_t n = 0;
+      ds.getSpace().getSimpleExtentDims(&n);
+      std::vector<double> v(n);
+      ds.read(v.data(), H5::PredType::NATIVE_DOUBLE);
+      std::replace(name.begin(), name.end(), '|', '/');
+      out[name] = v;
+    }
+  } catch (const H5::Exception& e) {
+    fail("{}: cannot read metric results ({}); delete the run directory to recompute it", path, e.getDetailMsg());
+  }
+  return out;
+}
+
 void write_metric_results(const std::string& dir, const std::map<std::string, std::vector<double>>& values) {
   std::string csv = "metric,mean,std,ci95,n\n";
   for (auto& [k, v] : values) {
@@ -129,7 +159,7 @@ void write_metric_results(const std::string& dir, const std::map<std::string, st
     for (auto& [k, v] : values) {
       hsize_t n = v.size();
       H5::DataSpace space(1, &n);
-      auto ds = g.createDataSet(k, H5::PredType::NATIVE_DOUBLE, space);
+      auto ds = g.createDataSet(h5_metric_name(k), H5::PredType::NATIVE_DOUBLE, space);
       ds.write(v.data(), H5::PredType::NATIVE_DOUBLE);
       Replicated r = summarize(v);
       H5::DataSpace scalar(H5S_SCALAR);

@@ -59,6 +59,8 @@ std::map<std::string, double> evaluator_free_metrics(const MotionSet& motions, c
 
 // Writes {metric: replicate values} and their summaries as CSV and HDF5 (atomic).
 void write_metric_results(const std::string& dir, const std::map<std::string, std::vector<double>>& values);
+// Reads what write_metric_results wrote (metrics.h5); UserError naming the file.
+std::map<std::string, std::vector<double>> read_metric_results(const std::string& dir);
 std::string format_metric_table(const std::map<std::string, std::vector<double>>& values);
 
 }  // namespace mc

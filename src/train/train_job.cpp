@@ -2,6 +2,7 @@
 // command, generator and experiment that needs a trained component on demand.
 #include "train/train_job.h"
 
+#include <algorithm>
 #include <filesystem>
 
 #include "core/error.h"
@@ -9,6 +10,11 @@
 
 namespace mc {
 namespace fs = std::filesystem;
+
+static std::vector<std::string>& trained_runs_registry() {
+  static std::vector<std::string> runs;
+  return runs;
+}
 
 static std::string stem_of(const std::string& file) { return fs::path(file).stem().string(); }
 
@@ -26,7 +32,17 @@ TrainResult run_train(const std::string& file, const std::vector<std::string>& o
   auto job = load_job<TrainJobConfig>(file, overrides);
   ensure_training_data(job);
   std::string name = fmt::format("{}-{}", stem_of(file), config_hash(job));
-  return train(job, overrides, name, stop_after);
+  TrainResult r = train(job, overrides, name, stop_after);
+  auto& used = trained_runs_registry();
+  const std::string dir = r.run_dir.string();
+  if (std::find(used.begin(), used.end(), dir) == used.end()) used.push_back(dir);
+  return r;
+}
+
+std::vector<std::string> take_trained_runs() {
+  std::vector<std::string> out;
+  out.swap(trained_runs_registry());
+  return out;
 }
 
 }  // namespace mc

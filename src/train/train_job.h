@@ -12,4 +12,9 @@ namespace mc {
 TrainResult run_train(const std::string& config_file, const std::vector<std::string>& overrides,
                       int64_t stop_after = 0);
 
+// Run directories run_train has returned since the last call (distinct, in
+// first-use order), and forgets them: lets the table replay record which trained
+// components each row used.
+std::vector<std::string> take_trained_runs();
+
 }  // namespace mc

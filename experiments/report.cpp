@@ -1,0 +1,577 @@
+// Table rendering (Markdown, CSV, LaTeX), results.h5 and the claims summary of
+// `motionctl reproduce`. Our numbers are mean +- 95% CI over replications; the
+// paper's numbers sit beside them and rows we do not reproduce are marked so.
+#include "experiments/report.h"
+
+#include <H5Cpp.h>
+#include <yaml-cpp/yaml.h>
+
+#include <cmath>
+#include <cstdlib>
+#include <filesystem>
+#include <fstream>
+#include <set>
+#include <sstream>
+
+#include "core/atomic_file.h"
+#include "core/error.h"
+#include "eval/metrics.h"
+
+namespace mc {
+namespace fs = std::filesystem;
+
+// ------------------------------------------------------------------ paper numbers
+
+static std::string str_or(const YAML::Node& n, const char* key, const std::string& dflt = "") {
+  return n[key] && !n[key].IsNull() ? n[key].as<std::string>() : dflt;
+}
+
+PaperTable load_paper_table(const std::string& file) {
+  PaperTable t;
+  t.file = file;
+  YAML::Node root;
+  try {
+    root = YAML::LoadFile(file);
+  } catch (const YAML::Exception& e) {
+    fail("{}: cannot read the paper numbers: {}", file, e.what());
+  }
+  t.paper = str_or(root, "paper");
+  t.title = str_or(root, "title");
+  t.source = str_or(root, "source");
+  t.table = root["table"] ? root["table"].as<int>() : 0;
+  if (!root["columns"] || !root["rows"]) fail("{}: paper numbers need `columns:` and `rows:`", file);
+  for (auto c : root["columns"]) t.columns.push_back({str_or(c, "key"), str_or(c, "name"), str_or(c, "better")});
+  int i = 0;
+  for (auto r : root["rows"]) {
+    PaperRow row;
+    row.method = str_or(r, "method");
+    row.section = str_or(r, "section");
+    row.kind = str_or(r, "kind");
+    row.ours_id = str_or(r, "ours_id");
+    if (r["values"])
+      for (auto kv : r["values"]) {
+        std::string k = kv.first.as<std::string>();
+        if (kv.second.IsNull()) {
+          row.values[k] = std::nullopt;
+        } else {
+          try {
+            row.values[k] = kv.second.as<double>();
+          } catch (const YAML::Exception&) {
+            fail("{}: rows[{}] ('{}'): value of '{}' is not a number: {}", file, i, row.method, k,
+                 kv.second.as<std::string>());
+          }
+        }
+      }
+    t.rows.push_back(row);
+    ++i;
+  }
+  return t;
+}
+
+const PaperRow* PaperTable::find(const std::string& ours_id, const std::string& section) const {
+  for (const auto& r : rows)
+    if (r.ours_id == ours_id && (section.empty() || r.section == section)) return &r;
+  return nullptr;
+}
+
+std::string PaperTable::column_name(const std::string& key) const {
+  std::string base = key.substr(0, key.find('@'));
+  for (const auto& c : columns)
+    if (c.key == base) return key == base ? c.name : c.name + " (" + key.substr(key.find('@') + 1) + ")";
+  return key;
+}
+
+// ------------------------------------------------------------------ cells
+
+static int decimals_for(double v) {
+  double a = std::fabs(v);
+  if (a == 0) return 3;
+  if (a >= 100) return 1;
+  if (a >= 10) return 2;
+  if (a >= 0.1) return 3;
+  return 4;
+}
+
+std::string format_cell(const std::map<std::string, std::vector<double>>& values, const std::string& key,
+                        bool with_ci) {
+  auto it = values.find(key);
+  if (it == values.end() || it->second.empty()) return "";
+  Replicated r = summarize(it->second);
+  int d = decimals_for(r.mean);
+  if (!with_ci || r.n < 2) return fmt::format("{:.{}f}", r.mean, d);
+  return fmt::format("{:.{}f} ± {:.{}f}", r.mean, d, r.ci95, d);
+}
+
+static std::string paper_cell(const PaperRow* p, const std::string& key) {
+  if (!p) return "";
+  auto it = p->values.find(key.substr(0, key.find('@')));
+  if (it == p->values.end() || !it->second) return key.find('@') == std::string::npos ? "–" : "";
+  double v = *it->second;
+  return fmt::format("{:.{}f}", v, decimals_for(v));
+}
+
+static std::string diff_cell(const std::map<std::string, std::vector<double>>& values, const PaperRow* p,
+                             const std::string& key) {
+  auto it = values.find(key);
+  if (!p || it == values.end() || it->second.empty()) return "";
+  auto pv = p->values.find(key);
+  if (pv == p->values.end() || !pv->second) return "";
+  double d = summarize(it->second).mean - *pv->second;
+  return fmt::format("{:+.{}f}", d, decimals_for(d));
+}
+
+static std::string csv_escape(const std::string& s) {
+  if (s.find_first_of(",\"\n") == std::string::npos) return s;
+  std::string o = "\"";
+  for (char c : s) o += c == '"' ? std::string("\"\"") : std::string(1, c);
+  return o + "\"";
+}
+
+static std::string tex_escape(const std::string& s) {
+  std::string o;
+  for (char c : s) {
+    if (c == '_' || c == '%' || c == '&' || c == '#' || c == '$') o += '\\';
+    if (c == '±') continue;
+    o += c;
+  }
+  return o;
+}
+
+// ------------------------------------------------------------------ tables
+
+RenderedTable render_table(const TableResult& t) {
+  RenderedTable out;
+  const auto& cols = t.spec.table.columns;
+  const PaperTable* paper = t.paper ? &*t.paper : nullptr;
+  auto header_name = [&](const std::string& k) { return paper ? paper->column_name(k) : k; };
+
+  // Which paper rows we reproduce.
+  std::set<const PaperRow*> matched;
+  std::vector<const PaperRow*> row_paper;
+  for (size_t i = 0; i < t.rows.size(); ++i) {
+    const RowConfig& rc = t.spec.rows[i];
+    const PaperRow* p = paper ? paper->find(rc.paper_id.empty() ? rc.id : rc.paper_id, rc.paper_section) : nullptr;
+    row_paper.push_back(p);
+    if (p) matched.insert(p);
+  }
+
+  // Markdown
+  std::string& md = out.markdown;
+  md += fmt::format("### {} — {}\n\n", t.spec.table.id, t.spec.table.title);
+  if (paper) md += fmt::format("Paper: {} ({}).\n\n", paper->source, paper->file);
+  md += "| Method | Source |";
+  for (auto& c : cols) md += " " + header_name(c) + " |";
+  md += "\n|---|---|";
+  for (size_t i = 0; i < cols.size(); ++i) md += "---:|";
+  md += "\n";
+  for (size_t i = 0; i < t.rows.size(); ++i) {
+    const auto& r = t.rows[i];
+    md += fmt::format("| **{}** | ours (fixture) |", r.label);
+    for (auto& c : cols) md += " " + format_cell(r.values, c, true) + " |";
+    md += "\n";
+    if (row_paper[i]) {
+      md += fmt::format("| ↳ {} | paper |", row_paper[i]->method);
+      for (auto& c : cols) md += " " + paper_cell(row_paper[i], c) + " |";
+      md += "\n| ↳ difference | ours − paper |";
+      for (auto& c : cols) md += " " + diff_cell(r.values, row_paper[i], c) + " |";
+      md += "\n";
+    }
+  }
+  if (paper) {
+    bool any = false;
+    for (const auto& p : paper->rows) {
+      if (matched.count(&p)) continue;
+      if (!any) {
+        md += "| *Paper rows not reproduced here* | | " + std::string(cols.size() > 1 ? "" : "") + "\n";
+        any = true;
+      }
+      std::string label = p.method + (p.section.empty() ? "" : " [" + p.section + "]");
+      md += fmt::format("| {} † | paper only |", label);
+      for (auto& c : cols) md += " " + paper_cell(&p, c) + " |";
+      md += "\n";
+    }
+  }
+  md += "\nOurs: mean ± 95% CI over replications on the synthetic fixture (not HumanML3D: compare trends, not "
+        "absolute values). † the paper's number, not reproduced by this framework.\n";
+
+  // CSV (long format: one line per row and metric)
+  out.csv = "table,row,label,source,metric,mean,ci95,n,paper,difference\n";
+  for (size_t i = 0; i < t.rows.size(); ++i) {
+    const auto& r = t.rows[i];
+    for (auto& c : cols) {
+      auto it = r.values.find(c);
+      std::string mean, ci, n;
+      if (it != r.values.end() && !it->second.empty()) {
+        Replicated s = summarize(it->second);
+        mean = fmt::format("{:.8g}", s.mean);
+        ci = fmt::format("{:.8g}", s.ci95);
+        n = std::to_string(s.n);
+      }
+      std::string pv = paper_cell(row_paper[i], c);
+      if (pv == "–") pv.clear();
+      out.csv += fmt::format("{},{},{},ours,{},{},{},{},{},{}\n", csv_escape(t.spec.table.id), csv_escape(r.row_id),
+                             csv_escape(r.label), csv_escape(c), mean, ci, n, pv, diff_cell(r.values, row_paper[i], c));
+    }
+  }
+  if (paper)
+    for (const auto& p : paper->rows) {
+      if (matched.count(&p)) continue;
+      for (auto& c : cols) {
+        std::string pv = paper_cell(&p, c);
+        if (pv.empty() || pv == "–") continue;
+        out.csv += fmt::format("{},,{},paper only,{},,,,{},\n", csv_escape(t.spec.table.id),
+                               csv_escape(p.method + (p.section.empty() ? "" : " [" + p.section + "]")), csv_escape(c),
+                               pv);
+      }
+    }
+
+  // LaTeX
+  std::string& tex = out.latex;
+  tex += "% " + t.spec.table.id + ": generated by `motionctl reproduce`; do not edit.\n";
+  tex += "\\begin{tabular}{l" + std::string(cols.size(), 'r') + "}\n\\toprule\nMethod";
+  for (auto& c : cols) tex += " & " + tex_escape(header_name(c));
+  tex += " \\\\\n\\midrule\n";
+  for (size_t i = 0; i < t.rows.size(); ++i) {
+    const auto& r = t.rows[i];
+    tex += tex_escape(r.label);
+    for (auto& c : cols) {
+      auto it = r.values.find(c);
+      if (it == r.values.end() || it->second.empty()) {
+        tex += " & ";
+        continue;
+      }
+      Replicated s = summarize(it->second);
+      int d = decimals_for(s.mean);
+      tex += fmt::format(" & ${:.{}f}{{\\scriptstyle\\pm {:.{}f}}}$", s.mean, d, s.ci95, d);
+    }
+    tex += " \\\\\n";
+    if (row_paper[i]) {
+      tex += "\\quad\\textit{paper}";
+      for (auto& c : cols) tex += " & " + paper_cell(row_paper[i], c);
+      tex += " \\\\\n";
+    }
+  }
+  if (paper) {
+    bool any = false;
+    for (const auto& p : paper->rows) {
+      if (matched.count(&p)) continue;
+      if (!any) {
+        tex += "\\midrule\n";
+        any = true;
+      }
+      tex += tex_escape(p.method) + "$^\\dagger$";
+      for (auto& c : cols) {
+        std::string pv = paper_cell(&p, c);
+        tex += " & " + (pv == "–" ? std::string("--") : pv);
+      }
+      tex += " \\\\\n";
+    }
+  }
+  tex += "\\bottomrule\n\\end{tabular}\n";
+  return out;
+}
+
+// ------------------------------------------------------------------ results.h5
+
+static void write_string_attr(H5::H5Object& obj, const char* name, const std::string& value) {
+  H5::StrType type(H5::PredType::C_S1, std::max<size_t>(1, value.size()));
+  H5::DataSpace scalar(H5S_SCALAR);
+  obj.createAttribute(name, type, scalar).write(type, value.empty() ? std::string(" ") : value);
+}
+
+static std::string h5_name(std::string s) {
+  for (char& c : s)
+    if (c == '/') c = '|';
+  return s;
+}
+
+// Copies every dataset and attribute of a row's examples.h5 into `dst`.
+static void copy_examples(const fs::path& file, H5::Group& dst) {
+  H5::H5File f(file.string(), H5F_ACC_RDONLY);
+  for (hsize_t i = 0; i < f.getNumObjs(); ++i) {
+    std::string name = f.getObjnameByIdx(i);
+    H5::DataSet ds = f.openDataSet(name);
+    H5::DataSpace space = ds.getSpace();
+    H5::DataType type = ds.getDataType();
+    std::vector<char> buf(ds.getStorageSize() > 0 ? ds.getInMemDataSize() : 0);
+    if (!buf.empty()) ds.read(buf.data(), type);
+    H5::DataSet out = dst.createDataSet(name, type, space);
+    if (!buf.empty()) out.write(buf.data(), type);
+  }
+  for (int i = 0; i < f.getNumAttrs(); ++i) {
+    H5::Attribute a = f.openAttribute(static_cast<unsigned>(i));
+    H5::StrType st = a.getStrType();
+    std::string v;
+    a.read(st, v);
+    write_string_attr(dst, a.getName().c_str(), v);
+  }
+}
+
+// metrics.csv of a training run as one dataset per column.
+static void copy_training_curves(const fs::path& run_dir, H5::Group& dst) {
+  std::ifstream in(run_dir / "metrics.csv");
+  std::string header;
+  if (!std::getline(in, header)) return;
+  std::vector<std::string> cols;
+  std::stringstream hs(header);
+  for (std::string c; std::getline(hs, c, ',');) cols.push_back(c);
+  std::vector<std::vector<double>> data(cols.size());
+  for (std::string line; std::getline(in, line);) {
+    std::stringstream ls(line);
+    size_t i = 0;
+    for (std::string cell; std::getline(ls, cell, ',') && i < cols.size(); ++i) {
+      char* end = nullptr;
+      double v = std::strtod(cell.c_str(), &end);
+      data[i].push_back(end == cell.c_str() ? std::nan("") : v);
+    }
+    for (; i < cols.size(); ++i) data[i].push_back(std::nan(""));
+  }
+  for (size_t i = 0; i < cols.size(); ++i) {
+    if (cols[i].empty() || dst.nameExists(h5_name(cols[i]))) continue;
+    hsize_t n = data[i].size();
+    H5::DataSpace space(1, &n);
+    dst.createDataSet(h5_name(cols[i]), H5::PredType::NATIVE_DOUBLE, space)
+        .write(data[i].data(), H5::PredType::NATIVE_DOUBLE);
+  }
+  write_string_attr(dst, "run_dir", run_dir.string());
+}
+
+void write_results_h5(const std::string& path, const std::vector<TableResult>& tables, const std::string& profile,
+                      const std::string& commit, const Skeleton* skeleton) {
+  AtomicOutput out(path);
+  {
+    H5::Exception::dontPrint();
+    H5::H5File f(out.tmp_path().string(), H5F_ACC_TRUNC);
+    H5::Group root = f.openGroup("/");
+    write_string_attr(root, "profile", profile);
+    write_string_attr(root, "commit", commit);
+    H5::Group tg = f.createGroup("tables");
+    for (const auto& t : tables) {
+      H5::Group g = tg.createGroup(h5_name(t.spec.table.id));
+      write_string_attr(g, "title", t.spec.table.title);
+      std::string cols;
+      for (auto& c : t.spec.table.columns) cols += (cols.empty() ? "" : ",") + c;
+      write_string_attr(g, "columns", cols);
+      for (size_t i = 0; i < t.rows.size(); ++i) {
+        const auto& r = t.rows[i];
+        H5::Group rg = g.createGroup(h5_name(r.row_id));
+        write_string_attr(rg, "label", r.label);
+        write_string_attr(rg, "run_dir", r.run_dir);
+        write_string_attr(rg, "generator", r.generator_description);
+        write_string_attr(rg, "order", std::to_string(i));
+        for (const auto& [k, v] : r.values) {
+          hsize_t n = v.size();
+          H5::DataSpace space(1, &n);
+          auto ds = rg.createDataSet(h5_name(k), H5::PredType::NATIVE_DOUBLE, space);
+          ds.write(v.data(), H5::PredType::NATIVE_DOUBLE);
+        }
+      }
+      if (t.paper) {
+        H5::Group pg = g.createGroup("_paper");
+        write_string_attr(pg, "source", t.paper->source);
+        for (size_t i = 0; i < t.paper->rows.size(); ++i) {
+          const auto& p = t.paper->rows[i];
+          H5::Group rg = pg.createGroup(fmt::format("{:03d}", i));
+          write_string_attr(rg, "method", p.method);
+          write_string_attr(rg, "section", p.section);
+          write_string_attr(rg, "kind", p.kind);
+          write_string_attr(rg, "ours_id", p.ours_id);
+          for (const auto& [k, v] : p.values) {
+            if (!v) continue;
+            H5::DataSpace scalar(H5S_SCALAR);
+            double x = *v;
+            rg.createDataSet(h5_name(k), H5::PredType::NATIVE_DOUBLE, scalar).write(&x, H5::PredType::NATIVE_DOUBLE);
+          }
+        }
+      }
+    }
+    // Examples of each row (figures), the skeleton to draw them, training curves.
+    H5::Group eg = f.createGroup("examples");
+    std::set<std::string> components;
+    for (const auto& t : tables) {
+      H5::Group tg2;
+      bool made = false;
+      for (const auto& r : t.rows) {
+        for (auto& c : r.components) components.insert(c);
+        fs::path ex = fs::path(r.run_dir) / "examples.h5";
+        if (!fs::exists(ex)) continue;
+        if (!made) {
+          tg2 = eg.createGroup(h5_name(t.spec.table.id));
+          made = true;
+        }
+        H5::Group rg = tg2.createGroup(h5_name(r.row_id));
+        try {
+          copy_examples(ex, rg);
+        } catch (const H5::Exception& e) {
+          fail("{}: cannot copy the row's examples ({}); delete the row's run directory to recompute it", ex.string(),
+               e.getDetailMsg());
+        }
+      }
+    }
+    if (skeleton) {
+      H5::Group sg = f.createGroup("skeleton");
+      std::vector<int32_t> parents(skeleton->parents.begin(), skeleton->parents.end());
+      hsize_t n = parents.size();
+      H5::DataSpace space(1, &n);
+      sg.createDataSet("parents", H5::PredType::NATIVE_INT32, space).write(parents.data(), H5::PredType::NATIVE_INT32);
+      std::string names;
+      for (size_t j = 0; j < skeleton->joint_names.size(); ++j) names += (j ? "\n" : "") + skeleton->joint_names[j];
+      write_string_attr(sg, "joint_names", names);
+    }
+    H5::Group trg = f.createGroup("training");
+    for (const auto& c : components) {
+      if (!fs::exists(fs::path(c) / "metrics.csv")) continue;
+      std::string name = fs::path(c).parent_path().filename().string() + "|" + fs::path(c).filename().string();
+      if (trg.nameExists(name)) continue;
+      H5::Group cg = trg.createGroup(name);
+      copy_training_curves(c, cg);
+    }
+  }
+  out.commit();
+}
+
+// ------------------------------------------------------------------ claims
+
+namespace {
+
+const TableResult* find_table(const std::vector<TableResult>& tables, const std::string& id) {
+  for (const auto& t : tables)
+    if (t.spec.table.id == id) return &t;
+  return nullptr;
+}
+const RowResult* find_row(const TableResult& t, const std::string& id) {
+  for (const auto& r : t.rows)
+    if (r.row_id == id) return &r;
+  return nullptr;
+}
+bool has(const RowResult* r, const std::string& metric) {
+  return r && r->values.count(metric) && !r->values.at(metric).empty();
+}
+
+}  // namespace
+
+// claims.yaml: a list of {id, text, table, kind, ...}:
+//   better:   row a beats row b on metric (direction lower|higher)
+//   zero:     row's metric <= tol
+//   monotone: rows in order improve on metric (direction)
+//   best:     row beats each of `others` on metric
+std::vector<ClaimCheck> check_claims(const std::string& claims_file, const std::vector<TableResult>& tables) {
+  std::vector<ClaimCheck> out;
+  YAML::Node root;
+  try {
+    root = YAML::LoadFile(claims_file);
+  } catch (const YAML::Exception& e) {
+    fail("{}: cannot read claims: {}", claims_file, e.what());
+  }
+  if (!root["claims"] || !root["claims"].IsSequence()) fail("{}: expected a `claims:` list", claims_file);
+  int idx = 0;
+  for (auto c : root["claims"]) {
+    ClaimCheck cc;
+    cc.id = str_or(c, "id", fmt::format("claim{}", idx));
+    cc.text = str_or(c, "text");
+    cc.table = str_or(c, "table");
+    std::string kind = str_or(c, "kind");
+    std::string metric = str_or(c, "metric");
+    std::string dir = str_or(c, "direction", "lower");
+    ++idx;
+    const TableResult* t = find_table(tables, cc.table);
+    if (!t) {
+      cc.verdict = "not run";
+      cc.evidence = "table " + cc.table + " was not part of this reproduction";
+      out.push_back(cc);
+      continue;
+    }
+    auto stat = [&](const RowResult* r) { return summarize(r->values.at(metric)); };
+    auto beats = [&](const Replicated& a, const Replicated& b) {
+      return dir == "higher" ? a.mean > b.mean : a.mean < b.mean;
+    };
+    auto overlap = [](const Replicated& a, const Replicated& b) {
+      return std::fabs(a.mean - b.mean) <= a.ci95 + b.ci95;
+    };
+    auto fmt_stat = [](const std::string& name, const Replicated& s) {
+      return fmt::format("{} {:.4g} ± {:.2g}", name, s.mean, s.ci95);
+    };
+    std::vector<std::string> rows;
+    if (c["rows"])
+      for (auto r : c["rows"]) rows.push_back(r.as<std::string>());
+    if (kind == "better" || kind == "best") {
+      std::string a = str_or(c, "row");
+      std::vector<std::string> others = rows;
+      if (kind == "better") others = {str_or(c, "than")};
+      const RowResult* ra = find_row(*t, a);
+      bool ok = has(ra, metric), all = true, any_overlap = false;
+      std::string ev;
+      if (ok) ev = fmt_stat(a, stat(ra));
+      for (auto& o : others) {
+        const RowResult* rb = find_row(*t, o);
+        if (!ok || !has(rb, metric)) {
+          ok = false;
+          break;
+        }
+        all = all && beats(stat(ra), stat(rb));
+        any_overlap = any_overlap || overlap(stat(ra), stat(rb));
+        ev += "; " + fmt_stat(o, stat(rb));
+      }
+      if (!ok) {
+        cc.verdict = "not run";
+        cc.evidence = "a row or the metric " + metric + " is missing";
+      } else {
+        cc.verdict = all ? "holds" : "does not hold";
+        cc.evidence = metric + ": " + ev + (any_overlap ? " (CIs overlap)" : " (CIs separate)");
+      }
+    } else if (kind == "zero") {
+      std::string a = str_or(c, "row");
+      double tol = c["tol"] ? c["tol"].as<double>() : 1e-4;
+      const RowResult* ra = find_row(*t, a);
+      if (!has(ra, metric)) {
+        cc.verdict = "not run";
+        cc.evidence = "row " + a + " or metric " + metric + " missing";
+      } else {
+        double mx = 0;
+        for (double v : ra->values.at(metric)) mx = std::max(mx, std::fabs(v));
+        cc.verdict = mx <= tol ? "holds" : "does not hold";
+        cc.evidence = fmt::format("{} {}: max over replicates {:.3g} (tolerance {:.1g})", a, metric, mx, tol);
+      }
+    } else if (kind == "monotone") {
+      bool ok = true, mono = true;
+      std::string ev = metric + ":";
+      std::optional<Replicated> prev;
+      for (auto& r : rows) {
+        const RowResult* rr = find_row(*t, r);
+        if (!has(rr, metric)) {
+          ok = false;
+          break;
+        }
+        Replicated s = stat(rr);
+        if (prev) mono = mono && beats(s, *prev);
+        prev = s;
+        ev += " " + fmt_stat(r, s) + ";";
+      }
+      cc.verdict = !ok ? "not run" : mono ? "holds" : "does not hold";
+      cc.evidence = ok ? ev : "a row or the metric is missing";
+    } else {
+      fail("{}: claim '{}' has unknown kind '{}' (better, best, zero, monotone)", claims_file, cc.id, kind);
+    }
+    out.push_back(cc);
+  }
+  return out;
+}
+
+std::string render_summary(const std::vector<ClaimCheck>& claims, const std::vector<TableResult>& tables,
+                           const std::string& profile, double seconds, const std::string& commit) {
+  std::string s = fmt::format("# Reproduction summary — profile `{}`\n\n", profile);
+  s += fmt::format("Commit {}; {} tables; wall time {:.1f} min (including training of missing components).\n\n",
+                   commit, tables.size(), seconds / 60.0);
+  int holds = 0, fails = 0, notrun = 0;
+  for (auto& c : claims) (c.verdict == "holds" ? holds : c.verdict == "does not hold" ? fails : notrun)++;
+  s += fmt::format("Claims: {} hold, {} do not hold on the fixture, {} not run.\n\n", holds, fails, notrun);
+  s += "| Claim | Table | Verdict | Evidence |\n|---|---|---|---|\n";
+  for (auto& c : claims) s += fmt::format("| {} | {} | **{}** | {} |\n", c.text, c.table, c.verdict, c.evidence);
+  s += "\n## Tables\n\n";
+  for (auto& t : tables)
+    s += fmt::format("- [{}]({}.md): {} ({} rows, {:.0f} s)\n", t.spec.table.id, h5_name(t.spec.table.id),
+                     t.spec.table.title, t.rows.size(), t.seconds);
+  return s;
+}
+
+}  // namespace mc

@@ -1,0 +1,64 @@
+// Rendering the replay: per table Markdown/CSV/LaTeX (ours +- CI beside the
+// paper's numbers), results.h5 with every raw replicate, and the claims summary.
+#pragma once
+#include <map>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "data/skeleton.h"
+#include "experiments/experiment.h"
+
+namespace mc {
+
+// experiments/paper_numbers/<paper>/tableN.yaml (format: experiments/paper_numbers/README.md).
+struct PaperColumn {
+  std::string key, name, better;  // better: lower | higher | closer_to_real | ""
+};
+struct PaperRow {
+  std::string method, section, kind, ours_id;
+  std::map<std::string, std::optional<double>> values;
+};
+struct PaperTable {
+  std::string file, paper, title, source;
+  int table = 0;
+  std::vector<PaperColumn> columns;
+  std::vector<PaperRow> rows;
+  const PaperRow* find(const std::string& ours_id, const std::string& section) const;
+  std::string column_name(const std::string& key) const;  // the paper's header, or the key
+};
+PaperTable load_paper_table(const std::string& file);  // UserError naming the file and row
+
+struct TableResult {
+  TableSpec spec;
+  std::optional<PaperTable> paper;
+  std::vector<RowResult> rows;
+  double seconds = 0;
+};
+
+struct RenderedTable {
+  std::string markdown, csv, latex;
+};
+RenderedTable render_table(const TableResult& t);
+
+// results.h5: /tables/<table id>/<row id>/<metric> = replicate values (attrs mean,
+// ci95), row attrs label/run_dir/generator; /paper/<table id>/... the paper's cells.
+// /examples/<table>/<row>/ copies each row's examples.h5 (a few samples with their
+// targets, for figures), /skeleton the skeleton to draw them, /training/<run>/ the
+// metrics.csv columns of every trained component the rows used.
+void write_results_h5(const std::string& path, const std::vector<TableResult>& tables, const std::string& profile,
+                      const std::string& commit, const Skeleton* skeleton = nullptr);
+
+// A claim of a paper checked on our numbers (experiments/claims.yaml).
+struct ClaimCheck {
+  std::string id, text, table, verdict;  // verdict: holds | does not hold | not run
+  std::string evidence;                  // numbers and CI overlap
+};
+std::vector<ClaimCheck> check_claims(const std::string& claims_file, const std::vector<TableResult>& tables);
+std::string render_summary(const std::vector<ClaimCheck>& claims, const std::vector<TableResult>& tables,
+                           const std::string& profile, double seconds, const std::string& commit);
+
+// The value shown for (row, column): `key` of the row's replicates; "" when absent.
+std::string format_cell(const std::map<std::string, std::vector<double>>& values, const std::string& key, bool with_ci);
+
+}  // namespace mc

@@ -1,0 +1,145 @@
+// The reproduce orchestrator: profile -> tables -> rows (cached) -> rendered
+// tables, results.h5, claims summary and figures.
+#include "experiments/reproduce.h"
+
+#include <algorithm>
+#include <chrono>
+#include <cstdio>
+#include <filesystem>
+#include <iostream>
+
+#include "core/atomic_file.h"
+#include "core/error.h"
+#include "data/skeleton.h"
+#include "experiments/experiment.h"
+#include "experiments/report.h"
+#include "experiments/row_evaluator.h"
+
+namespace mc {
+namespace fs = std::filesystem;
+
+std::vector<std::string> list_table_specs(const std::string& specs_root) {
+  std::vector<std::string> out;
+  fs::path root = resolve_data_path(specs_root);
+  if (!fs::exists(root)) fail("experiment specs folder '{}' does not exist", specs_root);
+  for (auto& e : fs::recursive_directory_iterator(root)) {
+    if (!e.is_regular_file() || e.path().extension() != ".yaml") continue;
+    auto rel = fs::relative(e.path(), root).string();
+    if (rel.rfind("paper_numbers", 0) == 0 || rel.rfind("generators", 0) == 0 || rel.rfind("protocols", 0) == 0)
+      continue;
+    if (e.path().filename() == "claims.yaml") continue;
+    out.push_back(e.path().string());
+  }
+  std::sort(out.begin(), out.end());
+  return out;
+}
+
+static bool selected(const std::string& id, const std::vector<std::string>& wanted) {
+  if (wanted.empty()) return true;
+  for (auto& w : wanted)
+    if (id == w || id.rfind(w + "/", 0) == 0 || (w.size() && id.rfind(w, 0) == 0 && w.back() == '/')) return true;
+  return false;
+}
+
+static std::string git_commit() {
+  std::string out;
+  FILE* p = popen(("git -C " + std::string(MOTIONCTL_SOURCE_DIR) + " rev-parse --short HEAD 2>/dev/null").c_str(), "r");
+  if (!p) return "unknown";
+  char buf[64];
+  while (fgets(buf, sizeof buf, p)) out += buf;
+  pclose(p);
+  while (!out.empty() && (out.back() == '\n' || out.back() == '\r')) out.pop_back();
+  return out.empty() ? "unknown" : out;
+}
+
+ReproduceResult reproduce(const ReproduceOptions& opt) {
+  auto t0 = std::chrono::steady_clock::now();
+  std::string profile_file = opt.profile;
+  if (profile_file.find('/') == std::string::npos && profile_file.find(".yaml") == std::string::npos)
+    profile_file = resolve_data_path("configs/profile/" + profile_file + ".yaml");
+  if (!fs::exists(profile_file))
+    fail("profile '{}' not found ({} does not exist); profiles are the files in configs/profile/", opt.profile,
+         profile_file);
+  ProfileFile pf = load_job<ProfileFile>(profile_file, opt.profile_overrides);
+
+  // Load and check every selected spec before anything runs: a typo fails in seconds.
+  std::vector<TableSpec> specs;
+  std::set<std::string> seen;
+  for (const auto& file : list_table_specs(opt.specs_root)) {
+    TableSpec s = load_table_spec(file);
+    if (!seen.insert(s.table.id).second) fail("{}: table id '{}' is used by two specs", file, s.table.id);
+    if (!selected(s.table.id, opt.tables)) continue;
+    for (auto& row : s.rows) resolve_row(pf.profile, s, row);
+    specs.push_back(std::move(s));
+  }
+  if (specs.empty()) {
+    std::string ids;
+    for (auto& id : seen) ids += " " + id;
+    fail("--tables matched no experiment spec; known tables:{}", ids);
+  }
+
+  ReproduceResult res;
+  fs::path out_dir = fs::path(resolve_data_path(pf.profile.results_root)) / pf.profile.name;
+  fs::create_directories(out_dir);
+  res.results_dir = out_dir.string();
+  const std::string commit = git_commit();
+
+  RowEvaluator ev(pf.profile);
+  std::vector<TableResult> results;
+  for (const auto& spec : specs) {
+    auto ts = std::chrono::steady_clock::now();
+    TableResult tr;
+    tr.spec = spec;
+    if (!spec.table.paper_numbers.empty()) {
+      std::string pn = resolve_data_path(spec.table.paper_numbers);
+      if (!fs::exists(pn)) fail("{}: table.paper_numbers '{}' does not exist", spec.file, spec.table.paper_numbers);
+      tr.paper = load_paper_table(pn);
+    }
+    std::cerr << fmt::format("== {} ({} rows)\n", spec.table.id, spec.rows.size());
+    std::vector<RowConfig> kept;
+    for (const auto& row : spec.rows) {
+      try {
+        RowResult r = run_row(pf, spec, row, ev);
+        std::cerr << fmt::format("   {:<28} {}{}\n", row.id, r.cached ? "(cached) " : "",
+                                 format_cell(r.values, spec.table.columns.front(), true));
+        tr.rows.push_back(std::move(r));
+        kept.push_back(row);
+      } catch (const UserError& e) {
+        res.failures.push_back(fmt::format("{} / {}: {}", spec.table.id, row.id, e.what()));
+        std::cerr << fmt::format("   {:<28} FAILED: {}\n", row.id, e.what());
+      }
+    }
+    tr.spec.rows = kept;
+    tr.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - ts).count();
+    RenderedTable rt = render_table(tr);
+    fs::path base = out_dir / spec.table.id;
+    fs::create_directories(base.parent_path());
+    write_file_atomic(base.string() + ".md", rt.markdown);
+    write_file_atomic(base.string() + ".csv", rt.csv);
+    write_file_atomic(base.string() + ".tex", rt.latex);
+    res.table_files.push_back(base.string() + ".md");
+    results.push_back(std::move(tr));
+  }
+  write_results_h5((out_dir / "results.h5").string(), results, pf.profile.name, commit, &ev.data().skeleton);
+  double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  std::vector<ClaimCheck> claims;
+  fs::path claims_file = fs::path(resolve_data_path(opt.specs_root)) / "claims.yaml";
+  if (fs::exists(claims_file)) claims = check_claims(claims_file.string(), results);
+  for (auto& c : claims)
+    (c.verdict == "holds" ? res.claims_hold : c.verdict == "does not hold" ? res.claims_fail : res.claims_not_run)++;
+  std::string summary = render_summary(claims, results, pf.profile.name, seconds, commit);
+  if (!res.failures.empty()) {
+    summary += "\n## Rows that failed\n\n";
+    for (auto& f : res.failures) summary += "- " + f + "\n";
+  }
+  write_file_atomic(out_dir / "summary.md", summary);
+  if (opt.figures) {
+    std::string cmd = fmt::format("\"{}\" \"{}\" \"{}\" --out \"{}\"", opt.python,
+                                  resolve_data_path("tools/figures.py"), (out_dir / "results.h5").string(),
+                                  (out_dir / "figures").string());
+    if (std::system(cmd.c_str()) != 0) res.failures.push_back("figures: tools/figures.py failed (see above)");
+  }
+  return res;
+}
+
+}  // namespace mc

@@ -1,0 +1,30 @@
+// `motionctl reproduce`: every table of both papers (and the cross-method
+// benchmark) on the fixture under one profile, rendered to results/<profile>/.
+#pragma once
+#include <string>
+#include <vector>
+
+namespace mc {
+
+struct ReproduceOptions {
+  std::string profile = "smoke";               // name (configs/profile/<name>.yaml) or file
+  std::vector<std::string> tables;             // ids or prefixes ("projflow", "anchorroute/table4"); empty = all
+  std::vector<std::string> profile_overrides;  // e.g. profile.num_samples=8
+  std::string specs_root = "experiments";      // where the table specs live
+  bool figures = true;
+  std::string python = "/usr/bin/python3";
+};
+
+struct ReproduceResult {
+  std::string results_dir;
+  std::vector<std::string> table_files;  // Markdown per table
+  std::vector<std::string> failures;     // "table/row: message"
+  int claims_hold = 0, claims_fail = 0, claims_not_run = 0;
+};
+
+// Lists the experiment specs under specs_root (tableN.yaml files outside paper_numbers/), sorted.
+std::vector<std::string> list_table_specs(const std::string& specs_root);
+
+ReproduceResult reproduce(const ReproduceOptions& opt);
+
+}  // namespace mc

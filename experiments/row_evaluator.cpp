@@ -1,0 +1,50 @@
+// The shared ground truth and evaluator of the table replay.
+#include "experiments/row_evaluator.h"
+
+#include <filesystem>
+
+#include "core/error.h"
+#include "data/fixture/fixture_build.h"
+#include "data/skeleton.h"
+#include "train/train_job.h"
+
+namespace mc {
+namespace fs = std::filesystem;
+
+RowEvaluator::RowEvaluator(const ProfileConfig& profile) {
+  data_path_ = resolve_data_path(profile.data);
+  if (!fs::exists(data_path_)) {
+    if (profile.data_fixture.empty())
+      fail("profile.data '{}' does not exist and profile.data_fixture is empty; build it with `motionctl fixture`",
+           profile.data);
+    build_fixture(resolve_data_path(profile.data_fixture), {fmt::format("output={}", profile.data)}, false);
+  }
+  data_ = read_motion_file(data_path_);
+  split_ = data_.indices_of_split(profile.split);
+  if (split_.empty()) fail("{}: the {} split is empty; choose another profile.split", profile.data, profile.split);
+  reference_ = data_.subset(split_);
+  TrainResult r = run_train(resolve_data_path(profile.evaluator), {});
+  evaluator_run_ = r.run_dir.string();
+  evaluator_ = std::make_unique<T2MEvaluator>(T2MEvaluator::load(evaluator_run_));
+  reference_embeddings_ = evaluator_->embed_motions(reference_, profile.data);
+}
+
+std::vector<ControlTask> RowEvaluator::tasks(const ControlProtocol& protocol, int n, uint64_t seed) const {
+  std::vector<size_t> clips = split_;
+  if (n > 0 && static_cast<size_t>(n) < clips.size()) clips.resize(n);
+  std::vector<ControlTask> t = protocol.make_tasks(data_, clips, seed);
+  if (t.empty()) fail("the protocol produced no tasks from {} clips", clips.size());
+  return t;
+}
+
+std::map<std::string, double> RowEvaluator::t2m(const MotionSet& generated, const EvalProtocol& p,
+                                                uint64_t seed) const {
+  EvalEmbeddings e;
+  e.gt_motion = reference_embeddings_;
+  e.motion = evaluator_->embed_motions(generated, "generated motions");
+  for (size_t i = 0; i < generated.size(); ++i) e.captions.push_back(generated.captions[i].at(0));
+  e.text = evaluator_->embed_texts(e.captions);
+  return t2m_metrics(e, p, seed);
+}
+
+}  // namespace mc

@@ -1,0 +1,39 @@
+// What every row of every table is measured against: the ground-truth file and
+// split (tasks and the FID reference) and the trained evaluator, loaded once.
+#pragma once
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "control/control_task.h"
+#include "data/motion_set.h"
+#include "eval/evaluation.h"
+#include "eval/t2m_evaluator.h"
+#include "experiments/experiment.h"
+
+namespace mc {
+
+class RowEvaluator {
+ public:
+  // Builds the data from profile.data_fixture when missing; trains the evaluator on first use.
+  explicit RowEvaluator(const ProfileConfig& profile);
+
+  // The protocol's tasks on the first n clips of the split (n = 0: all). Same
+  // arguments, same tasks: every row of a table sees the same tasks.
+  std::vector<ControlTask> tasks(const ControlProtocol& protocol, int n, uint64_t seed) const;
+  // One replication of the evaluator metrics of `generated` against the split.
+  std::map<std::string, double> t2m(const MotionSet& generated, const EvalProtocol& p, uint64_t seed) const;
+
+  const MotionSet& data() const { return data_; }
+  const MotionSet& reference() const { return reference_; }
+  const std::string& evaluator_run() const { return evaluator_run_; }
+
+ private:
+  MotionSet data_, reference_;
+  std::vector<size_t> split_;
+  std::string data_path_, evaluator_run_;
+  std::unique_ptr<T2MEvaluator> evaluator_;
+  Embeddings reference_embeddings_;
+};
+
+}  // namespace mc

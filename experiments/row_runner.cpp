@@ -1,0 +1,438 @@
+// Runs one table row: tasks from the protocol, `repeats` fresh generations,
+// evaluator and control metrics per replicate, cached in a run directory keyed
+// by the resolved generator, protocol and profile.
+#include <yaml-cpp/yaml.h>
+
+#include <chrono>
+#include <filesystem>
+#include <set>
+#include <sstream>
+
+#include "control/camera.h"
+#include "control/linear_observation.h"
+#include <H5Cpp.h>
+
+#include "core/atomic_file.h"
+#include "core/error.h"
+#include "data/fixture/fixture_build.h"
+#include "data/motion_set.h"
+#include "data/skeleton.h"
+#include "eval/observation_errors.h"
+#include "experiments/experiment.h"
+#include "experiments/row_evaluator.h"
+#include "samplers/motion_generator.h"
+#include "train/train_job.h"
+#include "train/trainer.h"
+
+namespace mc {
+namespace fs = std::filesystem;
+
+ProfileFile load_profile(const std::string& name_or_file) {
+  std::string file = name_or_file;
+  if (file.find('/') == std::string::npos && file.find(".yaml") == std::string::npos)
+    file = resolve_data_path("configs/profile/" + file + ".yaml");
+  if (!fs::exists(file))
+    fail("profile '{}' not found ({} does not exist); known profiles are the files in configs/profile/", name_or_file,
+         file);
+  return load_job<ProfileFile>(file, {});
+}
+
+TableSpec load_table_spec(const std::string& file) {
+  TableSpec spec;
+  spec.file = file;
+  YAML::Node root;
+  try {
+    root = YAML::LoadFile(file);
+  } catch (const YAML::Exception& e) {
+    fail("{}: cannot read the experiment spec: {}", file, e.what());
+  }
+  if (!root.IsMap() || !root["table"] || !root["rows"])
+    fail("{}: an experiment spec needs a `table:` section and a `rows:` list", file);
+  for (auto kv : root) {
+    std::string k = kv.first.as<std::string>();
+    if (k != "table" && k != "rows")
+      fail("{}: unknown top-level key '{}'{}; an experiment spec has `table:` and `rows:`", file, k,
+           did_you_mean(k, {"table", "rows"}).empty() ? "" : " (did you mean '" + did_you_mean(k, {"table", "rows"}) + "'?)");
+  }
+  {
+    YAML::Node t;
+    t["table"] = root["table"];
+    // Parsed as a section of a one-key document so messages say `table.<key>`.
+    struct Wrapper : Config {
+      TableConfig* t;
+      void visit(FieldVisitor& v) override { v("table", *t, "table"); }
+    } w;
+    w.t = &spec.table;
+    parse_config(config_from_string(YAML::Dump(t), file), w);
+  }
+  if (!root["rows"].IsSequence() || root["rows"].size() == 0) fail("{}: `rows:` must be a non-empty list", file);
+  std::set<std::string> ids;
+  for (size_t i = 0; i < root["rows"].size(); ++i) {
+    RowConfig row;
+    parse_config(config_from_string(YAML::Dump(root["rows"][i]), fmt::format("{} rows[{}]", file, i)), row);
+    if (!ids.insert(row.id).second) fail("{}: rows[{}] repeats the row id '{}'; ids must be unique", file, i, row.id);
+    spec.rows.push_back(row);
+  }
+  return spec;
+}
+
+// Composes `file`, applies the profile substitutions whose path exists in it,
+// then `overrides`, and parses the one component under `key`.
+static std::string resolve_component(const std::string& file, const std::string& key,
+                                     const std::vector<std::string>& substitutions,
+                                     const std::vector<std::string>& overrides, Component& out) {
+  std::string path = resolve_data_path(file);
+  if (!fs::exists(path)) fail("{} file '{}' does not exist", key, file);
+  ConfigSource plain = compose_config(path, {});
+  std::vector<std::string> applied;
+  for (const auto& s : substitutions) {
+    auto eq = s.find('=');
+    if (eq == std::string::npos) fail("profile.substitutions entry '{}' is not path=value", s);
+    std::string p = s.substr(0, eq);
+    YAML::Node n = YAML::Clone(*plain.root);
+    bool exists = true;
+    size_t start = 0;
+    while (exists) {
+      size_t dot = p.find('.', start);
+      std::string part = p.substr(start, dot == std::string::npos ? std::string::npos : dot - start);
+      if (!n.IsMap() || !n[part]) {
+        exists = false;
+        break;
+      }
+      n.reset(n[part]);
+      if (dot == std::string::npos) break;
+      start = dot + 1;
+    }
+    if (exists) applied.push_back(s);
+  }
+  for (const auto& o : overrides) applied.push_back(o);
+  struct Wrapper : Config {
+    Component* c;
+    std::string key;
+    void visit(FieldVisitor& v) override { v(key.c_str(), *c, "component"); }
+  } w;
+  w.c = &out;
+  w.key = key;
+  parse_config(compose_config(path, applied), w);
+  return dump_config(w);
+}
+
+ResolvedRow resolve_row(const ProfileConfig& profile, const TableSpec& table, const RowConfig& row) {
+  ResolvedRow r;
+  r.generator_yaml = resolve_component(row.generator, "generator", profile.substitutions, row.overrides, r.generator);
+  std::string proto_file = row.protocol.empty() ? table.table.protocol : row.protocol;
+  if (proto_file.empty()) fail("{}: row '{}' has no protocol and the table names none", table.file, row.id);
+  std::vector<std::string> po = table.table.protocol_overrides;
+  po.insert(po.end(), row.protocol_overrides.begin(), row.protocol_overrides.end());
+  r.protocol_yaml = resolve_component(proto_file, "protocol", profile.substitutions, po, r.protocol);
+  return r;
+}
+
+// The key that decides whether a finished row run can be reused.
+struct RowRunKey : Config {
+  std::string generator, protocol, data, evaluator, split;
+  int num_samples = 0, repeats = 0;
+  int64_t seed = 0;
+  EvalProtocol eval;
+  void visit(FieldVisitor& v) override {
+    v("generator", generator, "resolved generator");
+    v("protocol", protocol, "resolved protocol");
+    v("data", data, "ground-truth file");
+    v("evaluator", evaluator, "evaluator config");
+    v("split", split, "split");
+    v("num_samples", num_samples, "tasks");
+    v("repeats", repeats, "replications");
+    v("seed", seed, "base seed");
+    v("eval", eval, "metric protocol");
+  }
+};
+
+static MotionSet to_motion_set(const GeneratedMotions& g, const std::vector<ControlTask>& tasks, const MotionSet& like) {
+  MotionSet m;
+  m.skeleton = like.skeleton;
+  m.fps = like.fps;
+  m.t_max = like.t_max;
+  const int J = like.num_joints();
+  torch::Tensor w = g.world.to(torch::kCPU, torch::kFloat).contiguous();
+  if (w.dim() != 4 || w.size(0) != static_cast<int64_t>(tasks.size()) || w.size(2) != J || w.size(3) != 3)
+    fail("generator returned motions of shape {} for {} tasks of a {}-joint skeleton", (std::ostringstream() << w.sizes()).str(),
+         tasks.size(), J);
+  if (!torch::isfinite(w).all().item<bool>()) fail("generator returned non-finite joints; nothing was written");
+  const int64_t T = std::min<int64_t>(w.size(1), m.t_max);
+  m.joints.assign(tasks.size() * m.clip_stride(), 0.0f);
+  const float* src = w.data_ptr<float>();
+  for (size_t i = 0; i < tasks.size(); ++i) {
+    int len = std::min<int>(g.lengths.at(i), static_cast<int>(T));
+    std::copy(src + i * w.size(1) * J * 3, src + (i * w.size(1) + len) * J * 3, m.clip(i));
+    m.lengths.push_back(len);
+    m.ids.push_back(tasks[i].id);
+    m.splits.push_back("sample");
+    m.captions.push_back({tasks[i].caption});
+  }
+  m.stats = like.stats;
+  return m;
+}
+
+// Frames of an item resolved against T (the compile() rules for camera items: default all).
+static std::vector<int> item_frames(const FrameSelection& f, int T) {
+  std::vector<int> out;
+  switch (f.kind) {
+    case FrameSelection::Kind::list:
+      for (int t : f.list) out.push_back(t < 0 ? T + t : t);
+      break;
+    case FrameSelection::Kind::range:
+      for (int t = f.start; t < (f.stop < 0 ? T : std::min(f.stop, T)); t += f.step) out.push_back(t);
+      break;
+    default:
+      for (int t = 0; t < T; ++t) out.push_back(t);
+  }
+  return out;
+}
+
+// Metrics of one replicate: evaluator metrics, control metrics overall and per
+// task group (and per component of a group path "a=1/b=2"), foot skating, lifting.
+static std::map<std::string, double> replicate_metrics(RowEvaluator& ev, const MotionSet& gen,
+                                                       const std::vector<ControlTask>& tasks,
+                                                       const EvalProtocol& proto, uint64_t seed) {
+  std::map<std::string, double> out = ev.t2m(gen, proto, seed);
+  const Skeleton& skel = gen.skeleton;
+  const int J = gen.num_joints();
+  std::vector<JointsView> clips;
+  for (size_t i = 0; i < gen.size(); ++i) clips.push_back(joints_view(gen, i));
+  FootSkatingOptions fo;
+  fo.fps = gen.fps;
+  fo.padded_196 = proto.foot_skating_padded_196;
+  out["foot_skating"] = foot_skating_ratio(clips, skel, fo);
+
+  std::map<std::string, std::vector<std::vector<double>>> errors;  // group filter -> per-sample entry errors
+  std::vector<LiftingSample> lifting;
+  std::vector<std::vector<float>> gt_store(tasks.size());
+  std::vector<std::vector<uint8_t>> mask_store(tasks.size());
+  for (size_t i = 0; i < tasks.size(); ++i) {
+    const ControlTask& task = tasks[i];
+    if (task.spec.items.empty()) continue;
+    LinearObservation obs = compile(task.spec, gen.lengths[i], skel, task.source.empty() ? nullptr : task.source.data());
+    std::vector<double> e = observation_entry_errors(obs, gen.clip(i));
+    errors[""].push_back(e);
+    if (!task.group.empty()) {
+      errors[task.group].push_back(e);
+      size_t start = 0;
+      while (true) {
+        size_t slash = task.group.find('/', start);
+        std::string part = task.group.substr(start, slash == std::string::npos ? std::string::npos : slash - start);
+        if (part != task.group) errors[part].push_back(e);
+        if (slash == std::string::npos) break;
+        start = slash + 1;
+      }
+    }
+    // 2D-to-3D lifting metrics for the first camera item of the task.
+    for (const auto& item : task.spec.items) {
+      if (item.type != "camera_2d" || task.source.empty()) continue;
+      const int T = gen.lengths[i];
+      LiftingSample s;
+      s.prediction = joints_view(gen, i);
+      gt_store[i] = task.source;
+      s.ground_truth = joints_view(gt_store[i], T, J);
+      s.camera = OrthoCamera{item.camera.scale, item.camera.pitch_deg * M_PI / 180.0,
+                             item.camera.yaw_deg * M_PI / 180.0, item.camera.roll_deg * M_PI / 180.0};
+      s.target_2d = project_motion(s.camera, s.ground_truth);
+      s.keyframes = item_frames(item.frames, T);
+      mask_store[i].assign(static_cast<size_t>(T) * J, 0);
+      std::vector<int> joints;
+      if (item.joints.empty())
+        for (int j = 0; j < J; ++j) joints.push_back(j);
+      else
+        for (const auto& r : item.joints) joints.push_back(r.name.empty() ? r.index : skel.joint_index(r.name));
+      for (int t : s.keyframes)
+        for (int j : joints) mask_store[i][static_cast<size_t>(t) * J + j] = 1;
+      s.controlled = mask_view(mask_store[i], T, J, 1);
+      lifting.push_back(s);
+      break;
+    }
+  }
+  ControlOptions co;
+  co.thresholds = proto.control_thresholds;
+  for (auto& [group, errs] : errors) {
+    ControlMetrics cm = control_metrics_from_errors(errs, co);
+    std::string suffix = group.empty() ? "" : "@" + group;
+    out["traj_err" + suffix] = cm.traj_err;
+    out["loc_err" + suffix] = cm.loc_err;
+    out["avg_err" + suffix] = cm.avg_err;
+    out["control_error" + suffix] = cm.control_error;
+    if (group.empty())
+      for (auto& rate : cm.rates) {
+        out[fmt::format("traj_err_{:g}cm", rate.threshold * 100)] = rate.traj_err;
+        out[fmt::format("loc_err_{:g}cm", rate.threshold * 100)] = rate.loc_err;
+      }
+  }
+  if (!lifting.empty()) {
+    LiftingMetrics lm = lifting_metrics(lifting, skel.root());
+    out["mpjpe_2d"] = lm.mpjpe_2d;
+    out["mpjpe_3d"] = lm.mpjpe_3d;
+    out["avg_err_2d"] = lm.avg_err_2d;
+    out["avg_err_3d"] = lm.avg_err_3d;
+  }
+  return out;
+}
+
+// The first `k` samples of a replicate with what figures need to draw them
+// against their tasks: target clip, hard 3D point constraints, cameras.
+static void write_examples(const std::string& path, const MotionSet& gen, const std::vector<ControlTask>& tasks,
+                           size_t k) {
+  k = std::min(k, tasks.size());
+  const int J = gen.num_joints(), T = gen.t_max;
+  const size_t per = static_cast<size_t>(T) * J * 3;
+  std::vector<float> joints(k * per, 0.f), target(k * per, 0.f);
+  std::vector<uint8_t> controlled(k * per, 0), controlled_2d(k * static_cast<size_t>(T) * J, 0);
+  std::vector<double> camera(k * 4, 0.0);
+  std::vector<int32_t> lengths(k);
+  bool any_camera = false;
+  std::string captions, ids;
+  for (size_t i = 0; i < k; ++i) {
+    const int len = gen.lengths[i];
+    lengths[i] = len;
+    std::copy(gen.clip(i), gen.clip(i) + static_cast<size_t>(len) * J * 3, joints.begin() + i * per);
+    const ControlTask& t = tasks[i];
+    std::copy(t.source.begin(), t.source.begin() + std::min(t.source.size(), static_cast<size_t>(len) * J * 3),
+              target.begin() + i * per);
+    captions += (i ? "\n" : "") + t.caption;
+    ids += (i ? "\n" : "") + t.id;
+    if (t.spec.items.empty()) continue;
+    LinearObservation obs = compile(t.spec, len, gen.skeleton, t.source.empty() ? nullptr : t.source.data());
+    for (int r = 0; r < obs.rows(); ++r) {
+      if (!obs.is_hard(r) || obs.A.outerIndexPtr()[r + 1] - obs.A.outerIndexPtr()[r] != 1) continue;
+      Eigen::SparseMatrix<double, Eigen::RowMajor>::InnerIterator it(obs.A, r);
+      controlled[i * per + it.col()] = 1;
+    }
+    for (const auto& item : t.spec.items) {
+      if (item.type != "camera_2d") continue;
+      if (!any_camera || camera[i * 4] == 0.0) {
+        camera[i * 4 + 0] = item.camera.scale;
+        camera[i * 4 + 1] = item.camera.pitch_deg;
+        camera[i * 4 + 2] = item.camera.yaw_deg;
+        camera[i * 4 + 3] = item.camera.roll_deg;
+      }
+      any_camera = true;
+      std::vector<int> js;
+      if (item.joints.empty())
+        for (int j = 0; j < J; ++j) js.push_back(j);
+      else
+        for (const auto& r : item.joints) js.push_back(r.name.empty() ? r.index : gen.skeleton.joint_index(r.name));
+      for (int f : item_frames(item.frames, len))
+        for (int j : js) controlled_2d[(i * T + f) * J + j] = 1;
+    }
+  }
+  AtomicOutput out(path);
+  {
+    H5::Exception::dontPrint();
+    H5::H5File f(out.tmp_path().string(), H5F_ACC_TRUNC);
+    hsize_t d4[4] = {k, static_cast<hsize_t>(T), static_cast<hsize_t>(J), 3};
+    H5::DataSpace s4(4, d4);
+    f.createDataSet("joints", H5::PredType::NATIVE_FLOAT, s4).write(joints.data(), H5::PredType::NATIVE_FLOAT);
+    f.createDataSet("target", H5::PredType::NATIVE_FLOAT, s4).write(target.data(), H5::PredType::NATIVE_FLOAT);
+    f.createDataSet("controlled", H5::PredType::NATIVE_UINT8, s4).write(controlled.data(), H5::PredType::NATIVE_UINT8);
+    hsize_t d1 = k;
+    H5::DataSpace s1(1, &d1);
+    f.createDataSet("lengths", H5::PredType::NATIVE_INT32, s1).write(lengths.data(), H5::PredType::NATIVE_INT32);
+    if (any_camera) {
+      hsize_t dc[2] = {k, 4};
+      H5::DataSpace sc(2, dc);
+      f.createDataSet("camera", H5::PredType::NATIVE_DOUBLE, sc).write(camera.data(), H5::PredType::NATIVE_DOUBLE);
+      hsize_t d3[3] = {k, static_cast<hsize_t>(T), static_cast<hsize_t>(J)};
+      H5::DataSpace s3(3, d3);
+      f.createDataSet("controlled_2d", H5::PredType::NATIVE_UINT8, s3)
+          .write(controlled_2d.data(), H5::PredType::NATIVE_UINT8);
+    }
+    H5::DataSpace scalar(H5S_SCALAR);
+    for (auto [name, value] : {std::pair<const char*, std::string>{"captions", captions}, {"task_ids", ids}}) {
+      H5::StrType type(H5::PredType::C_S1, std::max<size_t>(1, value.size()));
+      f.createAttribute(name, type, scalar).write(type, value.empty() ? std::string(" ") : value);
+    }
+  }
+  out.commit();
+}
+
+RowResult run_row(const ProfileFile& pf, const TableSpec& table, const RowConfig& row, RowEvaluator& ev) {
+  const ProfileConfig& profile = pf.profile;
+  RowResult result;
+  result.row_id = row.id;
+  result.label = row.label.empty() ? row.id : row.label;
+  ResolvedRow rr = resolve_row(profile, table, row);
+
+  RowRunKey key;
+  key.generator = rr.generator_yaml;
+  key.protocol = rr.protocol_yaml;
+  key.data = profile.data;
+  key.evaluator = profile.evaluator;
+  key.split = profile.split;
+  key.num_samples = table.table.num_samples > 0 ? table.table.num_samples : profile.num_samples;
+  key.repeats = profile.repeats;
+  key.seed = profile.seed;
+  key.eval = pf.protocol;
+  RunConfig rc;
+  rc.root = profile.runs_root;
+  rc.experiment = sanitize_name(profile.name) + "/rows";
+  rc.seed = profile.seed;
+  rc.threads = profile.threads;
+  rc.device = profile.device;
+  std::string yaml = dump_config(key);
+  RunDir run = RunDir::open(rc, yaml, {}, sanitize_name(row.id) + "-" + config_hash(key));
+  result.run_dir = run.path().string();
+  if (run.finished() && fs::exists(run.path() / "metrics.h5")) {
+    result.values = read_metric_results(run.path().string());
+    result.cached = true;
+    if (fs::exists(run.path() / "notes.txt")) {
+      std::ifstream in(run.path() / "notes.txt");
+      std::string line;
+      std::getline(in, result.generator_description);
+      while (std::getline(in, line)) result.notes.push_back(line);
+    }
+    if (fs::exists(run.path() / "components.txt")) {
+      std::ifstream in(run.path() / "components.txt");
+      for (std::string line; std::getline(in, line);)
+        if (!line.empty()) result.components.push_back(line);
+    }
+    return result;
+  }
+
+  std::vector<ControlTask> tasks = ev.tasks(as_protocol(rr.protocol), key.num_samples, profile.seed);
+  GeneratorContext ctx;
+  ctx.device = setup_torch(rc);
+  take_trained_runs();
+  std::unique_ptr<MotionGenerator> gen = as_generator(rr.generator).make(ctx);
+  result.components = take_trained_runs();
+  result.generator_description = gen->describe();
+  run.log().info(fmt::format("row {}: {} on {} tasks x {} replicates", row.id, result.generator_description,
+                             tasks.size(), key.repeats));
+  for (int r = 0; r < key.repeats; ++r) {
+    const uint64_t seed = static_cast<uint64_t>(profile.seed) + 1000ull * r;
+    GeneratedMotions g = gen->generate(tasks, seed);
+    MotionSet m = to_motion_set(g, tasks, ev.data());
+    if (r == 0) {
+      result.notes = g.notes;
+      write_examples((run.path() / "examples.h5").string(), m, tasks, kExamplesPerRow);
+    }
+    m.provenance = Provenance{"motionctl reproduce", MOTIONCTL_VERSION, static_cast<int64_t>(seed), yaml, utc_timestamp()};
+    write_motion_file((run.path() / fmt::format("samples_r{}.h5", r)).string(), m);
+    auto metrics = replicate_metrics(ev, m, tasks, pf.protocol, seed);
+    metrics["time_per_sample"] = g.seconds / std::max<size_t>(1, tasks.size());
+    for (auto& [k, v] : metrics) {
+      if (!std::isfinite(v)) fail("row '{}': metric {} is not finite in replicate {}", row.id, k, r);
+      result.values[k].push_back(v);
+    }
+    run.log().info(fmt::format("  replicate {}: {:.2f} s/sample", r, metrics["time_per_sample"]));
+  }
+  std::string notes = result.generator_description + "\n";
+  for (auto& n : result.notes) notes += n + "\n";
+  write_file_atomic(run.path() / "notes.txt", notes);
+  std::string comps;
+  for (auto& c : result.components) comps += c + "\n";
+  write_file_atomic(run.path() / "components.txt", comps);
+  write_metric_results(run.path().string(), result.values);
+  std::map<std::string, double> summary;
+  for (auto& [k, v] : result.values) summary[k] = summarize(v).mean;
+  run.mark_finished(summary);
+  return result;
+}
+
+}  // namespace mc
