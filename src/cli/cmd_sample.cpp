@@ -22,12 +22,7 @@ static void run_sample(const std::string& file, const std::vector<std::string>& 
   rc.device = job.run.device;
   if (std::string e = rc.validate(); !e.empty()) fail("{}: run.device: {}", file, e);
 
-  std::string prior_dir = job.prior.run_dir;
-  if (prior_dir.empty()) {
-    TrainResult r = run_train(resolve_data_path(job.prior.config), job.prior.overrides);
-    prior_dir = r.run_dir.string();
-    std::cerr << "prior: " << prior_dir << (r.skipped ? " (already trained)" : " (trained)") << "\n";
-  }
+  std::string prior_dir = resolve_prior_run(job.prior, &std::cerr);
   torch::Device device = setup_torch(rc);
   FlowPrior prior = FlowPrior::load(prior_dir, device);
 

@@ -6,6 +6,7 @@
 
 #include "core/config.h"
 #include "samplers/flow_sampler.h"
+#include "samplers/prior_source.h"
 
 namespace mc {
 
@@ -17,22 +18,6 @@ struct SampleRunConfig : Config {
     v("seed", seed, "seed of the initial noise (stored in the output's provenance)");
     v("threads", threads, "torch CPU threads; 0 = all cores", at_least(0));
     v("device", device, "torch device: cpu, cuda, cuda:N");
-  }
-};
-
-struct PriorSourceConfig : Config {
-  std::string run_dir;                 // a finished flow_prior run; wins over `config`
-  std::string config;                  // else its training config, trained first when not finished
-  std::vector<std::string> overrides;  // overrides for `config`
-  void visit(FieldVisitor& v) override {
-    v("run_dir", run_dir, "finished flow_prior run directory (takes precedence over config)");
-    v("config", config, "training config of the prior (when run_dir is empty); trained like `motionctl train` "
-      "unless already finished");
-    v("overrides", overrides, "key=value overrides applied to `config`");
-  }
-  std::string validate() const override {
-    if (run_dir.empty() && config.empty()) return "set prior.run_dir (a finished flow_prior run) or prior.config";
-    return "";
   }
 };
 

@@ -63,6 +63,33 @@ FlowPrior FlowPrior::load(const std::string& run_dir, torch::Device device) {
   return p;
 }
 
+FlowPrior FlowPrior::untrained(const FlowPriorConfig& cfg, const Skeleton& skeleton, int t_max, uint64_t seed,
+                               torch::Device device) {
+  FlowPrior p;
+  p.run_dir_ = "<untrained>";
+  p.device_ = device;
+  p.cfg_ = cfg;
+  p.skeleton_ = skeleton;
+  p.t_max_ = t_max;
+  std::vector<std::string> words = TextVocab::special_tokens();
+  for (const char* w : {"a", "person", "walks", "runs", "jumps", "forward", "waves", "left", "right", "hand"})
+    words.push_back(w);
+  p.vocab_ = std::make_shared<TextVocab>(words, "untrained prior");
+  torch::manual_seed(seed);
+  p.net_ = std::make_shared<FlowPriorNet>(p.vocab_->size(), skeleton.num_joints(), cfg);
+  {
+    torch::NoGradGuard ng;
+    // AdaLN-Zero starts at the identity; small random weights everywhere give a
+    // network that costs what a trained one costs and returns non-trivial velocities.
+    for (auto& w : (*p.net_)->parameters()) w.normal_(0.0, 0.02);
+    (*p.net_)->joint_mean.copy_(torch::tensor({0.0f, 0.9f, 0.0f}));
+    (*p.net_)->joint_std.copy_(torch::tensor({0.5f, 0.6f, 0.8f}));
+  }
+  (*p.net_)->to(device);
+  (*p.net_)->eval();
+  return p;
+}
+
 // ---------------------------------------------------------------- velocity
 
 torch::Tensor FlowPrior::encode_texts(const std::vector<std::string>& captions) const {

@@ -32,6 +32,10 @@ class FlowPrior {
  public:
   // UserError naming the missing file, a wrong model type or an unreadable checkpoint.
   static FlowPrior load(const std::string& run_dir, torch::Device device = torch::kCPU);
+  // A randomly initialised prior of the given size held in memory (no run
+  // directory): for benchmarks, whose timings do not depend on trained weights.
+  static FlowPrior untrained(const FlowPriorConfig& cfg, const Skeleton& skeleton, int t_max, uint64_t seed,
+                             torch::Device device = torch::kCPU);
 
   // Pooled text vectors [B, text_width] of captions (the conditional input of velocity()).
   torch::Tensor encode_texts(const std::vector<std::string>& captions) const;
