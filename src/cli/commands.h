@@ -10,4 +10,6 @@ void add_config_command(CLI::App& app);
 void add_bench_command(CLI::App& app);
 void add_sample_command(CLI::App& app);
 void add_eval_commands(CLI::App& app);  // eval, score
+void add_reproduce_command(CLI::App& app);
+void add_generate_command(CLI::App& app);
 }  // namespace mc

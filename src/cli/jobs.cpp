@@ -3,6 +3,7 @@
 
 #include <yaml-cpp/yaml.h>
 
+#include "cli/generate_job.h"
 #include "cli/sample_job.h"
 #include "core/error.h"
 #include "cli/eval_job.h"
@@ -16,6 +17,7 @@ const std::vector<JobKind>& job_kinds() {
       {"train", "model", [] { return std::make_unique<TrainJobConfig>(); }},
       {"fixture", "fixture", [] { return std::make_unique<FixtureJobConfig>(); }},
       {"sample", "sampler", [] { return std::make_unique<SampleJobConfig>(); }},
+      {"generate", "generator", [] { return std::make_unique<GenerateJobConfig>(); }},
       {"eval", "protocol", [] { return std::make_unique<EvalJobConfig>(); }},
   };
   return kinds;

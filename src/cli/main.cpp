@@ -16,6 +16,8 @@ int main(int argc, char** argv) {
   app.require_subcommand(1);
   mc::add_fixture_command(app);
   mc::add_train_command(app);
+  mc::add_reproduce_command(app);
+  mc::add_generate_command(app);
   mc::add_sweep_command(app);
   mc::add_config_command(app);
   mc::add_bench_command(app);
