@@ -1,6 +1,8 @@
 // Benchmarks behind `motionctl bench ...` (measure speed here, never in tests).
 #pragma once
 #include <cstdint>
+#include <ostream>
+#include <vector>
 
 namespace mc {
 
@@ -13,5 +15,17 @@ struct BlasBenchResult {
 BlasBenchResult bench_sgemm(int threads, int64_t m = 12544, int64_t n = 256, int64_t k = 256, double min_seconds = 1.0);
 
 inline constexpr double kMinHealthyGflops = 20.0;
+
+struct ProjflowBenchOptions {
+  int depth = 8;              // ACMDM family rule: width 64 L, L heads (8 = the paper's S)
+  int frames = 196;
+  int samples = 2;
+  int steps = 99;
+  int keyframe_every = 5;     // hard keyframes on all joints every N frames
+  std::vector<int> dense_frames = {12, 24, 49};
+};
+// Unconstrained vs ProjFlow sampling time (with and without pseudo-observations)
+// and structured vs dense projection solves; prints a report to `out`.
+void bench_projflow(const ProjflowBenchOptions& o, std::ostream& out);
 
 }  // namespace mc

@@ -30,6 +30,22 @@ void add_bench_command(CLI::App& app) {
           kMinHealthyGflops);
   });
 
+  auto* pf = cmd->add_subcommand("projflow", "ProjFlow vs unconstrained sampling time; structured vs dense solver");
+  auto po = std::make_shared<ProjflowBenchOptions>();
+  auto pthreads = std::make_shared<int>(0);
+  pf->add_option("--depth", po->depth, "prior depth L (width 64 L; 8 = the paper's S)")->check(CLI::Range(1, 32));
+  pf->add_option("--frames", po->frames, "frames per sample")->check(CLI::Range(8, 1000));
+  pf->add_option("--samples", po->samples, "samples (one batch)")->check(CLI::Range(1, 256));
+  pf->add_option("--steps", po->steps, "Euler steps")->check(CLI::Range(1, 1000));
+  pf->add_option("--keyframe-every", po->keyframe_every, "hard keyframes on all joints every N frames")
+      ->check(CLI::Range(1, 1000));
+  pf->add_option("--dense-frames", po->dense_frames, "clip lengths of the dense-vs-structured solver comparison");
+  pf->add_option("--threads", *pthreads, "torch threads (0 = all cores)")->check(CLI::NonNegativeNumber);
+  pf->callback([po, pthreads] {
+    torch::set_num_threads(*pthreads > 0 ? *pthreads : static_cast<int>(std::max(1u, std::thread::hardware_concurrency())));
+    bench_projflow(*po, std::cout);
+  });
+
   auto* ev = cmd->add_subcommand("eval", "time to evaluate N motions (embedding + every metric, one replication)");
   struct EvalArgs {
     std::string evaluator = "configs/eval/evaluator_smoke.yaml";
