@@ -13,46 +13,13 @@
 #include "data/skeleton.h"
 #include "samplers/flow_sampler.h"
 #include "test_util.h"
+#include "samplers/flow_test_util.h"
 #include "train/trainer.h"
 
 using namespace mc;
 using namespace mc::test;
 
 namespace {
-
-const std::vector<std::string> kWords = {"<pad>", "<unk>", "<sos>", "<eos>", "a", "person", "walks", "jumps", "forward"};
-
-// A complete run directory of an untrained (randomised) tiny prior, as training writes it.
-void write_prior_run(const fs::path& dir, const std::string& model_type = "flow_prior") {
-  TrainJobConfig job;
-  parse_config(config_from_string("model:\n  type: flow_prior\n  depth: 2\n  width: 64\n  heads: 2\n"
-                                  "  text_width: 32\n  text_heads: 4\n  text_ff: 64\n  text_layers: 1\n"),
-               job);
-  std::string yaml = dump_config(job);
-  if (model_type != "flow_prior") yaml = "model:\n  type: " + model_type + "\n";
-  write_file_atomic(dir / "config.yaml", yaml);
-  std::string words;
-  for (auto& w : kWords) words += w + "\n";
-  write_file_atomic(dir / "outputs" / "vocab.txt", words);
-  YAML::Emitter e;
-  e << YAML::BeginMap << YAML::Key << "fps" << YAML::Value << 20.0 << YAML::Key << "t_max" << YAML::Value << 40
-    << YAML::Key << "num_joints" << YAML::Value << 22 << YAML::Key << "data" << YAML::Value << ""
-    << YAML::Key << "skeleton" << YAML::Value << YAML::Literal << skeleton_to_yaml(humanml3d_skeleton())
-    << YAML::EndMap;
-  write_file_atomic(dir / "outputs" / "prior_meta.yaml", std::string(e.c_str()) + "\n");
-  torch::manual_seed(5);
-  FlowPriorNet net(static_cast<int>(kWords.size()), 22, job.model.as<FlowPriorConfig>());
-  {
-    torch::NoGradGuard ng;
-    for (auto& p : net->parameters()) p.normal_(0.0, 0.1);
-    net->joint_mean.copy_(torch::tensor({0.0f, 0.9f, 0.1f}));
-    net->joint_std.copy_(torch::tensor({0.5f, 0.4f, 0.8f}));
-  }
-  torch::serialize::OutputArchive ar;
-  net->save(ar);
-  fs::create_directories(dir / "checkpoints");
-  ar.save_to((dir / "checkpoints" / "final.pt").string());
-}
 
 template <class F>
 std::string user_error_of(F&& f) {
