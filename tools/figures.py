@@ -18,6 +18,7 @@ import matplotlib
 matplotlib.use("Agg")
 matplotlib.rcParams["text.parse_math"] = False  # captions, labels and ids may contain "$"
 import matplotlib.pyplot as plt  # noqa: E402
+from matplotlib import ticker  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import motionio  # noqa: E402
@@ -28,6 +29,7 @@ FRONTIER_ROW = re.compile(r"^([^/]+)/rs(\d+)$")
 PAPER_FRONTIER_ROW = re.compile(r"^anchorroute/rs(\d+)$")
 NOT_LOSS_COLUMNS = {"step", "wall_time", "lr", "grad_norm", "epoch"}
 DPI = 100
+DEFAULT_FPS = 20.0  # HumanML3D's rate; results.h5 has no fps attribute unless the writer adds one
 
 
 class ResultsError(Exception):
@@ -344,9 +346,10 @@ def draw_frontiers(tables, info, out, no_paper, written, notes):
             c = colors[i % len(colors)]
             xs = [p[1][0] for p in pts]
             ys = [p[2][0] for p in pts]
-            n = min(min(p[1][2], p[2][2]) for p in pts)
+            counts = sorted({n for p in pts for n in (p[1][2], p[2][2])})
+            n = str(counts[0]) if len(counts) == 1 else f"{counts[0]}-{counts[-1]}"
             ax.errorbar(xs, ys, xerr=[p[1][1] for p in pts], yerr=[p[2][1] for p in pts], color=c, marker="o",
-                        ms=6, lw=1.6, capsize=3, label=f"{tid} (n>={n})", zorder=3)
+                        ms=6, lw=1.6, capsize=3, label=f"{tid} ({n} replicates)", zorder=3)
             for steps, x, y in pts:
                 ax.annotate(f"RS{steps}", (x[0], y[0]), textcoords="offset points", xytext=(6, 5), fontsize=8,
                             color=c)
@@ -387,7 +390,7 @@ def draw_trajectory_overlay(examples, info, out, written, notes):
     center, half = (lo + hi) / 2, max(0.5, float((hi - lo).max()) / 2 * 1.1)
     ncol = min(4, len(rows))
     nrow = math.ceil(len(rows) / ncol)
-    fig, axes = plt.subplots(nrow, ncol, figsize=(3.6 * ncol, 3.9 * nrow + 0.6), squeeze=False)
+    fig, axes = plt.subplots(nrow, ncol, figsize=(3.6 * ncol, 3.7 * nrow + 0.4), squeeze=False)
     for ax in axes.flat[len(rows):]:
         ax.set_visible(False)
     for ax, (e, gen, tgt, ctrl) in zip(axes.flat, paths):
@@ -400,10 +403,12 @@ def draw_trajectory_overlay(examples, info, out, written, notes):
         err = np.linalg.norm(e.joints[0, :len(ctrl), 0] - e.target[0, :len(ctrl), 0], axis=-1)[ctrl]
         stat = f"pelvis error at controlled frames: {100 * err.mean():.2f} cm" if err.size else "no controlled frames"
         ax.set_title(f"{wrap(e.label, 40)}\n{stat}", fontsize=8)
-        ax.set_xlim(center[0] - half, center[0] + half)
+        # x grows to the left: with z up the page this is the view from above (Y toward the reader),
+        # so left turns look like left turns.
+        ax.set_xlim(center[0] + half, center[0] - half)
         ax.set_ylim(center[1] - half, center[1] + half)
         ax.set_aspect("equal", adjustable="box")
-        ax.set_xlabel("x (m)")
+        ax.set_xlabel("x (m), seen from above")
         ax.set_ylabel("z (m)")
         ax.grid(alpha=0.3)
     axes.flat[0].legend(fontsize=7, loc="best")
@@ -450,17 +455,21 @@ def draw_lifting(examples, skeleton, info, out, written, notes):
     fig = plt.figure(figsize=(12.5, 5.6))
     ax2 = fig.add_subplot(1, 2, 1)
     # Frames where most joints are observed are key poses (the initial 2D keypose of Sketch2Anim).
-    for t in np.flatnonzero(obs.sum(axis=1) >= max(2, obs.shape[1] // 2)):
+    for i, t in enumerate(np.flatnonzero(obs.sum(axis=1) >= max(2, obs.shape[1] // 2))):
         draw_bones_2d(ax2, tgt2[t], parents, color=TARGET_COLOR, lw=2.2, ls="--", zorder=1)
         draw_bones_2d(ax2, gen2[t], parents, color=GEN_COLOR, lw=1.2, zorder=2)
-        ax2.annotate(f"key pose t={t}", tgt2[t, 0], textcoords="offset points", xytext=(6, -12), fontsize=7,
-                     color="0.3")
+        top = tgt2[t, np.argmax(tgt2[t, :, 1])]
+        ax2.annotate(f"key pose t={t}", top, textcoords="offset points", xytext=(0, 6), fontsize=7,
+                     color="0.3", ha="center")
+        if i == 0:
+            ax2.plot([], [], color=TARGET_COLOR, lw=2.2, ls="--", label="2D key pose (target)")
+            ax2.plot([], [], color=GEN_COLOR, lw=1.2, label="key pose, generated, projected")
     traj_joints = [j for j in range(obs.shape[1]) if obs[:, j].sum() >= 2]
     cmap = plt.get_cmap("tab10")
     for i, j in enumerate(traj_joints[:10]):
         c = cmap(i % 10)
         ts = np.flatnonzero(obs[:, j])
-        ax2.plot(gen2[:, j, 0], gen2[:, j, 1], color=c, lw=1.6, zorder=3, label=f"{names[j]}: generated")
+        ax2.plot(gen2[:, j, 0], gen2[:, j, 1], color=c, lw=1.6, zorder=3, label=f"{names[j]}: generated, projected")
         ax2.scatter(tgt2[ts, j, 0], tgt2[ts, j, 1], s=16, marker="x", color="k", lw=0.8, zorder=4,
                     label="2D targets" if i == 0 else None)
     if len(traj_joints) > 10:
@@ -508,6 +517,19 @@ def draw_lifting(examples, skeleton, info, out, written, notes):
 # --------------------------------------------------------------------------
 # 4. Training curves.
 
+def plain_log_labels(ax):
+    """Plain-number labels on a log y axis (the default ones are mathtext, switched off above); on a
+    short range the 2x and 5x minor ticks are labelled too."""
+    lo, hi = ax.get_ylim()
+    short = math.log10(hi / lo) < 2.0
+    ax.yaxis.set_major_formatter(ticker.FuncFormatter(lambda v, _: f"{v:g}"))
+
+    def minor(v, _):
+        mantissa = round(v / 10 ** math.floor(math.log10(v) + 1e-9))
+        return f"{v:g}" if short and mantissa in (2, 5) else ""
+    ax.yaxis.set_minor_formatter(ticker.FuncFormatter(minor))
+
+
 def draw_training(f, path, info, out, written, notes):
     if "training" not in f or not isinstance(f["training"], h5py.Group) or not len(f["training"]):
         notes.append("training_curves: no /training group")
@@ -546,6 +568,7 @@ def draw_training(f, path, info, out, written, notes):
             drawn += 1
         if drawn:
             ax.set_yscale("log")
+            plain_log_labels(ax)
         ax.set_title(f"{name}\n{textwrap.shorten(run_dir, 60)}" if run_dir else name, fontsize=9)
         ax.set_xlabel("step")
         ax.set_ylabel("loss (log)")
@@ -560,7 +583,21 @@ def draw_training(f, path, info, out, written, notes):
 # --------------------------------------------------------------------------
 # 5. Stick-figure strips, one figure per examples table.
 
-def draw_strips(examples, skeleton, info, out, frames, written, notes):
+def snap_to_controlled(shown, controlled_frames, length):
+    """Move each evenly spaced strip frame to the nearest controlled frame within half a spacing, so
+    sparse constraints (a few keyframes) appear in the strip; frames stay distinct and sorted."""
+    if len(shown) < 2 or not len(controlled_frames):
+        return shown
+    half = (length - 1) / (len(shown) - 1) / 2
+    out = []
+    for t in shown:
+        near = controlled_frames[np.argmin(np.abs(controlled_frames - t))]
+        pick = int(near) if abs(near - t) <= half and near not in out else int(t)
+        out.append(pick if pick not in out else int(t))
+    return np.array(sorted(set(out)))
+
+
+def draw_strips(examples, skeleton, info, out, frames, fps, written, notes):
     if not examples:
         notes.append("strips_*: no /examples group")
         return
@@ -579,33 +616,36 @@ def draw_strips(examples, skeleton, info, out, frames, written, notes):
         clips = [e.joints[0, :int(e.lengths[0])] for e in rows]
         views = [render_motion.view_axis(c) for c in clips]
         extents = np.array([render_motion.strip_extent(c, u) for c, u in zip(clips, views)])
-        extent = (extents[:, 0].max(), extents[:, 1].min(), extents[:, 2].max())
-        panel_h = 2.3
+        extent = (extents[:, 0].max(), extents[:, 1].min(), extents[:, 2].max())  # one scale for all panels
+        panel_h = 2.2
         panel_w = panel_h * 2 * extent[0] / (extent[2] - extent[1])
         ncol = min(frames, max(len(c) for c in clips))
-        fig, axes = plt.subplots(len(rows), ncol, figsize=(max(6.0, panel_w * ncol + 0.6),
-                                                            (panel_h + 0.75) * len(rows) + 0.7), squeeze=False)
-        for r, (e, clip, u) in enumerate(zip(rows, clips, views)):
-            shown = render_motion.strip_frames(len(clip), ncol)
-            for ax in axes[r, len(shown):]:
+        fig = plt.figure(figsize=(max(7.0, panel_w * ncol + 0.9), (panel_h + 0.85) * len(rows) + 0.6),
+                         layout="constrained")
+        fig.get_layout_engine().set(h_pad=0.06, hspace=0.02)
+        subfigs = np.atleast_1d(fig.subfigures(len(rows), 1))
+        for sub, e, clip, u in zip(subfigs, rows, clips, views):
+            n = len(clip)
+            ctrl = e.controlled[0, :n].any(axis=-1)                     # [T, J]
+            shown = snap_to_controlled(render_motion.strip_frames(n, ncol), np.flatnonzero(ctrl.any(axis=1)), n)
+            axes = np.atleast_1d(sub.subplots(1, ncol))
+            for ax in axes[len(shown):]:
                 ax.set_visible(False)
             # The ground-truth clip the task came from, faint behind the sample, and the hard 3D
             # constraints of the shown frame (targets of the controlled joints).
-            th, tv, td = render_motion.side_view(e.target[0, :len(clip)], u)
-            for ax, t in zip(axes[r], shown):
+            th, tv, td = render_motion.side_view(e.target[0, :n], u)
+            for ax, t in zip(axes, shown):
                 render_motion.draw_pose(ax, th[t], tv[t], td[t], parents, ["0.8"] * len(parents), lw=1.4,
                                         zorder=1.5)
-                cj = np.flatnonzero(e.controlled[0, t].any(axis=-1))
+                cj = np.flatnonzero(ctrl[t])
                 if cj.size:
-                    ax.scatter(th[t, cj], tv[t, cj], s=28, facecolors="none", edgecolors="k", lw=0.9, zorder=4)
-            render_motion.draw_strip(axes[r], clip, parents, colors, shown, 20.0, u, extent)
-            axes[r, 0].text(0.0, 1.0 + 0.32 * 2.3 / panel_h, wrap(f"{e.label}: \"{e.caption(0)}\"", 150),
-                            transform=axes[r, 0].transAxes, fontsize=8, ha="left", va="bottom",
-                            fontweight="bold")
-        fig.suptitle(f"{tid}: first sample of each row (grey: ground-truth clip; circles: controlled joints "
-                     "at that frame; blue = left, red = right)", fontsize=9)
+                    ax.scatter(th[t, cj], tv[t, cj], s=30, facecolors="none", edgecolors="k", lw=0.9, zorder=4)
+            render_motion.draw_strip(axes, clip, parents, colors, shown, fps, u, extent)
+            sub.suptitle(textwrap.shorten(f"{e.label}: \"{e.caption(0)}\"", 160), x=0.01, ha="left",
+                         fontsize=9, fontweight="bold")
+        fig.suptitle(f"{tid}: first sample of each row\n(grey: ground-truth clip; circles: controlled joints at "
+                     "that frame; blue = left, red = right)", fontsize=9)
         footer(fig, info)
-        fig.tight_layout(rect=(0, 0.02, 1, 0.98), h_pad=2.2)
         save(fig, os.path.join(out, f"strips_{safe_name(tid)}.png"), written)
 
 
@@ -634,7 +674,8 @@ def main(argv=None):
             draw_trajectory_overlay(examples, info, args.out, written, notes)
             draw_lifting(examples, skeleton, info, args.out, written, notes)
             draw_training(f, args.file, info, args.out, written, notes)
-            draw_strips(examples, skeleton, info, args.out, args.frames, written, notes)
+            fps = float(f.attrs["fps"]) if "fps" in f.attrs else DEFAULT_FPS
+            draw_strips(examples, skeleton, info, args.out, args.frames, fps, written, notes)
     except (ResultsError, motionio.MotionFileError) as e:
         motionio.fail(str(e))
     for path in written:
