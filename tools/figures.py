@@ -302,8 +302,8 @@ def frontier_points(tables, notes):
             if not m:
                 continue
             family, steps = m.group(1), int(m.group(2))
-            x_key = next((k for k in ("control_error", f"control_error@family={family}") if k in r.metrics), None)
-            x = metric_stats(r.metrics[x_key]) if x_key else None
+            x = next((st for k in ("control_error", f"control_error@family={family}") if k in r.metrics
+                      for st in [metric_stats(r.metrics[k])] if st is not None), None)
             y = metric_stats(r.metrics["fid"]) if "fid" in r.metrics else None
             if x is None or y is None:
                 notes.append(f"frontier_{family}: {t.id} row {r.id} has no finite fid and control_error; "
@@ -609,7 +609,7 @@ def draw_strips(examples, skeleton, info, out, frames, fps, written, notes):
     for tid, rows in sorted(examples.items()):
         if not rows:
             continue
-        if rows[0].joints.shape[2] != len(parents):
+        if any(e.joints.shape[2] != len(parents) for e in rows):
             notes.append(f"strips_{safe_name(tid)}: examples have {rows[0].joints.shape[2]} joints, "
                          f"/skeleton {len(parents)}")
             continue
