@@ -117,7 +117,8 @@ def write_tables(f, rng):
     ctrl = {"fid": reps(0.4, 0.05), "r_precision_top3": reps(0.7, 0.01), "traj_err": reps(0.01, 0.002),
             "loc_err": reps(0.005, 0.001), "avg_err": reps(0.02, 0.002), "foot_skating": reps(0.06, 0.003)}
     table("projflow/table1", "Spatial control", list(ctrl),
-          [("pelvis/projflow", "ACMDM-S-PS22+ProjFlow", ctrl), ("pelvis/dno", "ACMDM-S-PS22+DNO", ctrl),
+          [("pelvis/projflow", "ACMDM-S-PS22+ProjFlow", ctrl),
+           ("pelvis/dno", "ACMDM-S-PS22+DNO ($\\lambda$ = 1)", ctrl),  # '$' must stay literal
            ("all/projflow", "ProjFlow (all joints)", ctrl)])
     table("projflow/table2", "2D-to-3D lifting", ["fid", "mpjpe_2d"],
           [("average/projflow", "ProjFlow (average)", {"fid": reps(0.5, 0.05), "mpjpe_2d": reps(0.0, 0.0)})])
@@ -149,7 +150,7 @@ def write_examples(f, rng):
             for k in range(K):
                 c2[k, lengths[k]:] = 0
             g.create_dataset("controlled_2d", data=c2)
-        g.attrs["captions"] = "a person walks along an S-shaped path\na person walks and waves"
+        g.attrs["captions"] = "a person walks along an S-shaped path\na person walks and waves for $5"
         g.attrs["task_ids"] = "task_000\ntask_001"
 
     def drift(clip):  # a generated motion that misses the target a little
