@@ -101,38 +101,51 @@ def view_axis(clip):
     return np.array([0.0, 1.0])  # (x, z) = +Z
 
 
-def render_strip(motion, i, frames, path):
-    clip = motion.clip(i).astype(np.float64)
-    length = clip.shape[0]
-    parents = motion.skeleton["parents"]
-    colors = bone_colors(motion.skeleton)
-    u = view_axis(clip)
-    # Depth toward the viewer: right x up points at the camera for a right-handed view.
-    w = np.array([-u[1], 0.0, u[0]])  # u x Y for u = (u_x, 0, u_z)
+def side_view(clip, u):
+    """Screen coordinates of the side view along unit xz direction u: horizontal, height and
+    depth toward the viewer, each [T, J]."""
+    # Right x up points at the camera for a right-handed view: depth = u x Y.
+    w = np.array([-u[1], 0.0, u[0]])
     horiz = clip[:, :, 0] * u[0] + clip[:, :, 2] * u[1]
     depth = clip[:, :, 0] * w[0] + clip[:, :, 2] * w[2]
-    height = clip[:, :, 1]
+    return horiz, clip[:, :, 1], depth
 
-    shown = np.unique(np.round(np.linspace(0, length - 1, min(frames, length))).astype(int))
+
+def strip_frames(length, frames):
+    """Up to `frames` evenly spaced frame indices of a clip of `length` frames."""
+    return np.unique(np.round(np.linspace(0, length - 1, min(frames, length))).astype(int))
+
+
+def strip_extent(clip, u):
+    """(half width, y_lo, y_hi) of the panels that keep the whole body of every frame in view."""
+    horiz, height, _ = side_view(clip, u)
     half_w = max(0.6, float(np.abs(horiz - horiz[:, :1]).max()) + 0.15)
     y_lo = min(-0.05, float(height.min()) - 0.05)
     y_hi = max(float(height.max()) + 0.1, y_lo + 0.5)
-    panel_h = 3.0
-    panel_w = panel_h * (2 * half_w) / (y_hi - y_lo)
-    fig, axes = plt.subplots(1, len(shown), figsize=(panel_w * len(shown) + 0.4, panel_h + 0.9),
-                             squeeze=False)
-    for k, (ax, t) in enumerate(zip(axes[0], shown)):
+    return half_w, y_lo, y_hi
+
+
+def draw_pose(ax, horiz, height, depth, parents, colors, lw=2.2, zorder=2, alpha=1.0):
+    """One pose (arrays [J]) as bones, far bones first so the near side is drawn on top."""
+    bones = [c for c in range(len(parents)) if parents[c] >= 0]
+    bones.sort(key=lambda c: depth[c] + depth[parents[c]])
+    for c in bones:
+        p = parents[c]
+        ax.plot([horiz[p], horiz[c]], [height[p], height[c]], color=colors[c], lw=lw,
+                solid_capstyle="round", zorder=zorder, alpha=alpha)
+
+
+def draw_strip(axes, clip, parents, colors, shown, fps, u, extent):
+    """Side-view poses of frames `shown` of `clip` [T, J, 3], one per axis of `axes`, each
+    centred on the root; `extent` = strip_extent(...) (shared so panels have one scale)."""
+    horiz, height, depth = side_view(clip, u)
+    half_w, y_lo, y_hi = extent
+    for k, (ax, t) in enumerate(zip(axes, shown)):
         center = horiz[t, 0]
         ax.plot(horiz[:, 0], height[:, 0], color="0.6", lw=1.0, alpha=0.5, zorder=1)  # root path
         ax.axhline(0.0, color="0.35", lw=1.0, zorder=1)
-        # Far bones first so the near side of the body is drawn on top.
-        bones = [c for c in range(len(parents)) if parents[c] >= 0]
-        bones.sort(key=lambda c: depth[t, c] + depth[t, parents[c]])
-        for c in bones:
-            p = parents[c]
-            ax.plot([horiz[t, p], horiz[t, c]], [height[t, p], height[t, c]], color=colors[c],
-                    lw=2.2, solid_capstyle="round", zorder=2)
-        ax.scatter(horiz[t], height[t], s=6, c=[colors[j] for j in range(len(colors))], zorder=3)
+        draw_pose(ax, horiz[t], height[t], depth[t], parents, colors)
+        ax.scatter(horiz[t], height[t], s=6, c=list(colors), zorder=3)
         ax.set_xlim(center - half_w, center + half_w)
         ax.set_ylim(y_lo, y_hi)
         ax.set_aspect("equal")
@@ -141,9 +154,24 @@ def render_strip(motion, i, frames, path):
             ax.set_yticks([])
         else:
             ax.set_ylabel("height (m)")
-        ax.set_title(f"t={t} ({t / motion.fps:.2f}s)", fontsize=8)
+        ax.set_title(f"t={t} ({t / fps:.2f}s)", fontsize=8)
         for side in ("top", "right"):
             ax.spines[side].set_visible(False)
+
+
+def render_strip(motion, i, frames, path):
+    clip = motion.clip(i).astype(np.float64)
+    length = clip.shape[0]
+    colors = bone_colors(motion.skeleton)
+    u = view_axis(clip)
+    shown = strip_frames(length, frames)
+    extent = strip_extent(clip, u)
+    half_w, y_lo, y_hi = extent
+    panel_h = 3.0
+    panel_w = panel_h * (2 * half_w) / (y_hi - y_lo)
+    fig, axes = plt.subplots(1, len(shown), figsize=(panel_w * len(shown) + 0.4, panel_h + 0.9),
+                             squeeze=False)
+    draw_strip(axes[0], clip, motion.skeleton["parents"], colors, shown, motion.fps, u, extent)
     caption = motion.captions[i][0]
     title = "\n".join(textwrap.wrap(caption, width=max(40, int(18 * panel_w * len(shown)))))
     fig.suptitle(title, fontsize=10)
