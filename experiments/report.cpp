@@ -129,9 +129,14 @@ static std::string csv_escape(const std::string& s) {
 
 static std::string tex_escape(const std::string& s) {
   std::string o;
-  for (char c : s) {
+  for (size_t i = 0; i < s.size(); ++i) {
+    if (s.compare(i, 2, "\u00b1") == 0) {  // UTF-8 plus-minus
+      o += "$\\pm$";
+      ++i;
+      continue;
+    }
+    const char c = s[i];
     if (c == '_' || c == '%' || c == '&' || c == '#' || c == '$') o += '\\';
-    if (c == '±') continue;
     o += c;
   }
   return o;
@@ -337,7 +342,8 @@ static void copy_training_curves(const fs::path& run_dir, H5::Group& dst) {
 }
 
 void write_results_h5(const std::string& path, const std::vector<TableResult>& tables, const std::string& profile,
-                      const std::string& commit, const Skeleton* skeleton) {
+                      const std::string& commit, const Skeleton* skeleton,
+                      const std::vector<std::string>& extra_components) {
   AtomicOutput out(path);
   {
     H5::Exception::dontPrint();
@@ -387,7 +393,7 @@ void write_results_h5(const std::string& path, const std::vector<TableResult>& t
     }
     // Examples of each row (figures), the skeleton to draw them, training curves.
     H5::Group eg = f.createGroup("examples");
-    std::set<std::string> components;
+    std::set<std::string> components(extra_components.begin(), extra_components.end());
     for (const auto& t : tables) {
       H5::Group tg2;
       bool made = false;

@@ -47,7 +47,8 @@ RenderedTable render_table(const TableResult& t);
 // targets, for figures), /skeleton the skeleton to draw them, /training/<run>/ the
 // metrics.csv columns of every trained component the rows used.
 void write_results_h5(const std::string& path, const std::vector<TableResult>& tables, const std::string& profile,
-                      const std::string& commit, const Skeleton* skeleton = nullptr);
+                      const std::string& commit, const Skeleton* skeleton = nullptr,
+                      const std::vector<std::string>& extra_components = {});
 
 // A claim of a paper checked on our numbers (experiments/claims.yaml).
 struct ClaimCheck {

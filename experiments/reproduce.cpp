@@ -3,6 +3,7 @@
 #include "experiments/reproduce.h"
 
 #include <algorithm>
+#include <fmt/ranges.h>
 #include <chrono>
 #include <cstdio>
 #include <filesystem>
@@ -14,6 +15,7 @@
 #include "experiments/experiment.h"
 #include "experiments/report.h"
 #include "experiments/row_evaluator.h"
+#include "train/train_job.h"
 
 namespace mc {
 namespace fs = std::filesystem;
@@ -75,7 +77,7 @@ ReproduceResult reproduce(const ReproduceOptions& opt) {
   if (specs.empty()) {
     std::string ids;
     for (auto& id : seen) ids += " " + id;
-    fail("--tables matched no experiment spec; known tables:{}", ids);
+    fail("--tables {} matched no experiment spec; known tables:{}", fmt::format("{}", fmt::join(opt.tables, ",")), ids);
   }
 
   ReproduceResult res;
@@ -84,7 +86,9 @@ ReproduceResult reproduce(const ReproduceOptions& opt) {
   res.results_dir = out_dir.string();
   const std::string commit = git_commit();
 
+  take_trained_runs();
   RowEvaluator ev(pf.profile);
+  const std::vector<std::string> evaluator_runs = take_trained_runs();  // its training curve goes in results.h5
   std::vector<TableResult> results;
   for (const auto& spec : specs) {
     auto ts = std::chrono::steady_clock::now();
@@ -120,7 +124,8 @@ ReproduceResult reproduce(const ReproduceOptions& opt) {
     res.table_files.push_back(base.string() + ".md");
     results.push_back(std::move(tr));
   }
-  write_results_h5((out_dir / "results.h5").string(), results, pf.profile.name, commit, &ev.data().skeleton);
+  write_results_h5((out_dir / "results.h5").string(), results, pf.profile.name, commit, &ev.data().skeleton,
+                   evaluator_runs);
   double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   std::vector<ClaimCheck> claims;
   fs::path claims_file = fs::path(resolve_data_path(opt.specs_root)) / "claims.yaml";

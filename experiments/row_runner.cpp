@@ -230,7 +230,8 @@ static std::map<std::string, double> replicate_metrics(RowEvaluator& ev, const M
       if (item.type != "camera_2d" || task.source.empty()) continue;
       const int T = gen.lengths[i];
       LiftingSample s;
-      s.prediction = joints_view(gen, i);
+      // The lifting metrics compare the valid frames only: a view of exactly T frames.
+      s.prediction = JointsView{gen.clip(i), T, J, T};
       gt_store[i] = task.source;
       s.ground_truth = joints_view(gt_store[i], T, J);
       s.camera = OrthoCamera{item.camera.scale, item.camera.pitch_deg * M_PI / 180.0,
