@@ -188,7 +188,17 @@ namespace {
 class FlowControlNetTrainer : public Trainable {
  public:
   FlowControlNetTrainer(const FlowControlNetConfig& c, const TrainContext& ctx) : cfg_(c), ctx_(ctx) {
-    base_run_ = resolve_prior_run(c.base, "model.base");
+    {
+      // Training the base on demand reseeds torch and may change its thread count;
+      // restoring both keeps this run's result independent of whether the base was
+      // trained now or earlier.
+      auto gen = at::detail::getDefaultCPUGenerator();
+      auto rng = gen.get_state();
+      const int threads = torch::get_num_threads();
+      base_run_ = resolve_prior_run(c.base, "model.base");
+      gen.set_state(rng);
+      torch::set_num_threads(threads);
+    }
     net_ = FlowControlNet::around(FlowPrior::load(base_run_, ctx.device));
     const FlowPrior& base = net_.base();
     if (base.num_joints() != ctx.data->num_joints())

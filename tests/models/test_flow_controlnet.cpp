@@ -282,6 +282,20 @@ TEST_CASE("ControlNet end to end: flow_tiny base on demand, train, sample throug
   CHECK(std::isfinite(r.summary["val_ctrl"]));
   CHECK(std::isfinite(r.summary["val_fm"]));
 
+  // Same config with the base already trained: the same branch (training the base on
+  // demand must not disturb the ControlNet's RNG stream).
+  TrainResult r2 = run_train(
+      "configs/prior/flow_controlnet_tiny.yaml",
+      {"model.base.overrides=" + base_ov, "optim.steps=24", "optim.batch_size=8", "optim.warmup=4",
+       "data.path=" + data, "run.root=" + t.path.string(), "run.name=cn2", "run.threads=1", "run.log_every=8",
+       "run.checkpoint_every=24"});
+  {
+    FlowControlNet a = FlowControlNet::load(cn_dir.string()), b = FlowControlNet::load(r2.run_dir.string());
+    auto pa = a.branch()->parameters(), pb = b.branch()->parameters();
+    REQUIRE(pa.size() == pb.size());
+    for (size_t i = 0; i < pa.size(); ++i) CHECK(torch::equal(pa[i], pb[i]));
+  }
+
   GeneratorJob job;
   parse_config(config_from_string(fmt::format("generator:\n  type: flow_controlnet\n  controlnet:\n    run_dir: {}\n"
                                               "  steps: 10\n",
