@@ -10,6 +10,7 @@
 #include "core/error.h"
 #include "data/skeleton.h"
 #include "samplers/projflow.h"
+#include "samplers/task_observation.h"
 
 namespace mc {
 
@@ -73,7 +74,7 @@ void bench_projflow(const ProjflowBenchOptions& o, std::ostream& out) {
   for (int i = 0; i < o.samples; ++i) tasks.push_back(keyframe_task(sk, T, o.keyframe_every, 100 + i));
   std::vector<std::string> captions(o.samples, tasks[0].caption);
   std::vector<int> lengths(o.samples, T);
-  auto obs = flow_model_observations(prior, tasks);
+  auto obs = model_observations(prior, tasks);
   out << fmt::format("constraints: all {} joints x 3 axes, hard, every {} frame(s) ({} rows per sample)\n",
                      sk.num_joints(), o.keyframe_every, obs[0].rows());
 

@@ -8,6 +8,7 @@
 #include "samplers/motion_generator.h"
 #include "samplers/prior_source.h"
 #include "samplers/projflow.h"
+#include "samplers/task_observation.h"
 
 namespace mc {
 namespace {
@@ -80,7 +81,7 @@ class ProjFlowGenerator : public MotionGenerator {
       : prior_(std::move(prior)), s_(s), p_(p), metric_(KinematicMetric::from_config(p.metric, prior_.skeleton())) {}
   GeneratedMotions generate(const std::vector<ControlTask>& tasks, uint64_t seed) override {
     auto in = flow_inputs(prior_, tasks);
-    auto obs = flow_model_observations(prior_, tasks);
+    auto obs = model_observations(prior_, tasks);
     auto t0 = Clock::now();
     ProjFlowStepper stepper(p_, metric_, std::move(obs));
     auto r = sample_flow(prior_, in.captions, in.lengths, s_, seed, &stepper);
@@ -126,7 +127,7 @@ class GuidanceGenerator : public MotionGenerator {
       : prior_(std::move(prior)), s_(s), g_(g) {}
   GeneratedMotions generate(const std::vector<ControlTask>& tasks, uint64_t seed) override {
     auto in = flow_inputs(prior_, tasks);
-    auto obs = flow_model_observations(prior_, tasks);
+    auto obs = model_observations(prior_, tasks);
     auto t0 = Clock::now();
     GuidanceStepper stepper(prior_, g_, s_.cfg_scale, std::move(obs), prior_.encode_texts(in.captions));
     auto r = sample_flow(prior_, in.captions, in.lengths, s_, seed, &stepper);

@@ -9,6 +9,7 @@
 
 #include "control/control_task.h"
 #include "core/error.h"
+#include "samplers/task_observation.h"
 
 namespace mc {
 
@@ -225,48 +226,6 @@ torch::Tensor ProjFlowStepper::step(const FlowStep& s) {
   return s.t_next * x1_star + (1 - s.t_next) * x0_tilde;
 }
 
-// ---------------------------------------------------------------- batched rows
-
-BatchedRows batch_rows(const std::vector<LinearObservation>& obs, const std::vector<int64_t>& sample_ids,
-                       int64_t frames_padded, torch::Device device) {
-  std::vector<int64_t> sample, coord, row, row_sample;
-  std::vector<double> coef, row_target;
-  int64_t next_row = 0;
-  for (size_t b = 0; b < sample_ids.size(); ++b) {
-    const LinearObservation& o = obs.at(sample_ids[b]);
-    const int64_t per_sample = frames_padded * o.joints * 3;
-    for (int r = 0; r < o.rows(); ++r) {
-      for (Eigen::SparseMatrix<double, Eigen::RowMajor>::InnerIterator it(o.A, r); it; ++it) {
-        sample.push_back(b);
-        coord.push_back(static_cast<int64_t>(b) * per_sample + it.col());
-        row.push_back(next_row);
-        coef.push_back(it.value());
-      }
-      row_target.push_back(o.y[r]);
-      row_sample.push_back(b);
-      ++next_row;
-    }
-  }
-  BatchedRows br;
-  auto i64 = torch::TensorOptions().dtype(torch::kInt64);
-  auto f64 = torch::TensorOptions().dtype(torch::kFloat64);
-  br.rows = next_row;
-  br.sample = torch::tensor(sample, i64).to(device);
-  br.coord = torch::tensor(coord, i64).to(device);
-  br.row = torch::tensor(row, i64).to(device);
-  br.coef = torch::tensor(coef, f64).to(device, torch::kFloat32);
-  br.row_target = torch::tensor(row_target, f64).to(device, torch::kFloat32);
-  br.row_sample = torch::tensor(row_sample, i64).to(device);
-  return br;
-}
-
-torch::Tensor BatchedRows::residual(const torch::Tensor& x) const {
-  auto flat = x.reshape({-1});
-  auto contrib = flat.index_select(0, coord) * coef;
-  auto ax = torch::zeros({rows}, x.options()).index_add(0, row, contrib);
-  return ax - row_target;
-}
-
 // ---------------------------------------------------------------- guidance
 
 GuidanceStepper::GuidanceStepper(const FlowPrior& prior, const GuidanceConfig& cfg, double cfg_scale,
@@ -277,8 +236,10 @@ torch::Tensor GuidanceStepper::step(const FlowStep& s) {
   torch::Tensor x = s.x;
   const int64_t B = x.size(0);
   if (cfg_.iterations > 0 && cfg_.scale > 0 && s.t < cfg_.until) {
-    BatchedRows rows = batch_rows(obs_, s.sample_ids, x.size(1), x.device());
-    if (rows.rows > 0) {
+    std::vector<const LinearObservation*> batch_obs;
+    for (int64_t id : s.sample_ids) batch_obs.push_back(&obs_.at(id));
+    BatchedObservation rows = batch_observations(batch_obs, x.size(1), x.size(2), x.device());
+    if (rows.rows() > 0) {
       auto idx = torch::tensor(s.sample_ids, torch::kInt64).to(text_.device());
       auto text = text_.index_select(0, idx);
       auto null = prior_.null_texts(B);
@@ -305,30 +266,6 @@ torch::Tensor GuidanceStepper::step(const FlowStep& s) {
     }
   }
   return s.x + (s.t_next - s.t) * s.v;
-}
-
-// ---------------------------------------------------------------- task observations
-
-std::vector<LinearObservation> flow_model_observations(const FlowPrior& prior, const std::vector<ControlTask>& tasks) {
-  auto mean = prior.net()->joint_mean.to(torch::kCPU, torch::kFloat64).contiguous();
-  auto sd = prior.net()->joint_std.to(torch::kCPU, torch::kFloat64).contiguous();
-  std::array<double, 3> scale{}, offset{};
-  for (int c = 0; c < 3; ++c) {
-    scale[c] = sd.data_ptr<double>()[c];
-    offset[c] = mean.data_ptr<double>()[c];
-  }
-  std::vector<LinearObservation> out;
-  out.reserve(tasks.size());
-  for (const auto& t : tasks) {
-    const size_t need = static_cast<size_t>(t.length) * prior.num_joints() * 3;
-    const float* src = t.source.size() == need ? t.source.data() : nullptr;
-    try {
-      out.push_back(affine_to_model(compile(t.spec, t.length, prior.skeleton(), src), scale, offset));
-    } catch (const UserError& e) {
-      fail("task '{}': {}", t.id, e.what());
-    }
-  }
-  return out;
 }
 
 }  // namespace mc

@@ -149,20 +149,4 @@ class GuidanceStepper : public FlowStepper {
   torch::Tensor text_;  // [N, width] pooled text vectors of every sample
 };
 
-// Sparse rows of per-sample observations as index tensors: residual r = A x - y
-// over a batch x [B, T, J, 3] without any dense operator.
-struct BatchedRows {
-  torch::Tensor sample, coord, row, coef, target;  // per non-zero: sample in batch, flat coord, global row, a
-  int64_t rows = 0;
-  torch::Tensor row_target, row_sample;  // per row
-  // A x - y for every row [rows].
-  torch::Tensor residual(const torch::Tensor& x) const;
-};
-BatchedRows batch_rows(const std::vector<LinearObservation>& obs, const std::vector<int64_t>& sample_ids,
-                       int64_t frames_padded, torch::Device device);
-
-// Compiles each task's spec for its length on the prior's skeleton and moves the
-// normaliser inside (affine_to_model). UserError naming the task on bad specs.
-std::vector<LinearObservation> flow_model_observations(const FlowPrior& prior, const std::vector<ControlTask>& tasks);
-
 }  // namespace mc

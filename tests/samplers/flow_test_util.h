@@ -16,7 +16,7 @@ namespace mc::test {
 inline const std::vector<std::string> kWords = {"<pad>", "<unk>", "<sos>", "<eos>", "a", "person", "walks", "jumps", "forward"};
 
 // A complete run directory of an untrained (randomised) tiny prior, as training writes it.
-inline void write_prior_run(const fs::path& dir, const std::string& model_type = "flow_prior") {
+inline void write_prior_run(const fs::path& dir, const std::string& model_type = "flow_prior", int t_max = 40) {
   TrainJobConfig job;
   parse_config(config_from_string("model:\n  type: flow_prior\n  depth: 2\n  width: 64\n  heads: 2\n"
                                   "  text_width: 32\n  text_heads: 4\n  text_ff: 64\n  text_layers: 1\n"),
@@ -28,7 +28,7 @@ inline void write_prior_run(const fs::path& dir, const std::string& model_type =
   for (auto& w : kWords) words += w + "\n";
   write_file_atomic(dir / "outputs" / "vocab.txt", words);
   YAML::Emitter e;
-  e << YAML::BeginMap << YAML::Key << "fps" << YAML::Value << 20.0 << YAML::Key << "t_max" << YAML::Value << 40
+  e << YAML::BeginMap << YAML::Key << "fps" << YAML::Value << 20.0 << YAML::Key << "t_max" << YAML::Value << t_max
     << YAML::Key << "num_joints" << YAML::Value << 22 << YAML::Key << "data" << YAML::Value << ""
     << YAML::Key << "skeleton" << YAML::Value << YAML::Literal << skeleton_to_yaml(humanml3d_skeleton())
     << YAML::EndMap;

@@ -275,31 +275,6 @@ TEST_CASE("reconstruction guidance pulls samples toward the constraints; imputat
   CHECK(err_guided < 0.5 * err_free);
 }
 
-TEST_CASE("batched residual rows equal the sparse product", "[projflow]") {
-  const Skeleton& sk = humanml3d_skeleton();
-  std::mt19937_64 rng(3);
-  std::vector<LinearObservation> obs;
-  std::vector<std::vector<float>> motions;
-  const int Tpad = 14;
-  auto x = torch::zeros({3, Tpad, 22, 3});
-  for (int i = 0; i < 3; ++i) {
-    const int T = 10 + i;
-    motions.push_back(random_motion(rng, T, sk));
-    obs.push_back(random_observation({"keyframe", "camera_2d", "relative", "loop"}, rng, T, sk, motions.back(), true));
-    x[i].narrow(0, 0, T).copy_(torch::from_blob(motions.back().data(), {T, 22, 3}).clone());
-  }
-  BatchedRows rows = batch_rows(obs, {2, 0, 1}, Tpad, torch::kCPU);  // batch order differs from obs order
-  auto xb = torch::stack({x[2], x[0], x[1]});
-  auto r = rows.residual(xb);
-  int64_t at = 0;
-  for (int b : {2, 0, 1}) {
-    Eigen::VectorXd ref = obs[b].A * to_vector(motions[b]) - obs[b].y;
-    for (int k = 0; k < ref.size(); ++k) CHECK(r[at + k].item<double>() == Approx(ref[k]).margin(1e-5));
-    at += ref.size();
-  }
-  CHECK(at == rows.rows);
-}
-
 TEST_CASE("spatial protocols: OmniControl densities, lifting cameras, applications", "[projflow][protocol]") {
   MotionSet data = random_motion_set({40, 60, 33, 50}, {"test"});
   std::vector<size_t> clips = {0, 1, 2, 3};

@@ -1,0 +1,326 @@
+// ControlNet branch on the flow prior: the zero-initialised copy, its trainer
+// (flow loss + L2 on controlled joints, base frozen), run loading and the
+// separately guided (text, control) velocity.
+#include "models/flow_controlnet.h"
+
+#include <ATen/CPUGeneratorImpl.h>
+#include <yaml-cpp/yaml.h>
+
+#include <cmath>
+#include <iostream>
+
+#include "core/atomic_file.h"
+#include "core/error.h"
+#include "samplers/prior_source.h"
+#include "train/trainable.h"
+#include "train/trainer.h"
+
+namespace mc {
+namespace nn = torch::nn;
+
+// ---------------------------------------------------------------- signal
+
+torch::Tensor control_signal(const torch::Tensor& target, const torch::Tensor& mask) {
+  auto m = mask.to(target.dtype());
+  return torch::cat({target * m, m}, -1);
+}
+
+torch::Tensor random_control_mask(const std::vector<int64_t>& lengths, int64_t T, int64_t J,
+                                  const std::vector<int>& joints, int min_frames, at::Generator gen) {
+  const int64_t B = lengths.size();
+  c10::optional<at::Generator> g;
+  if (gen.defined()) g = gen;
+  auto mask = torch::zeros({B, T, J, 3});
+  for (int64_t b = 0; b < B; ++b) {
+    const int64_t L = std::max<int64_t>(1, std::min<int64_t>(lengths[b], T));
+    const int64_t pick = torch::randint(0, static_cast<int64_t>(joints.size()), {1}, g).item<int64_t>();
+    const int j = joints[pick];
+    TORCH_CHECK(j >= 0 && j < J, "control joint ", j, " is outside the skeleton's ", J, " joints");
+    const double lo = std::log(static_cast<double>(std::min<int64_t>(min_frames, L)));
+    const double hi = std::log(static_cast<double>(L));
+    const double u = torch::rand({1}, g).item<double>();
+    const int64_t k = std::clamp<int64_t>(std::llround(std::exp(lo + u * (hi - lo))), 1, L);
+    auto frames = torch::randperm(L, g, torch::TensorOptions().dtype(torch::kInt64)).narrow(0, 0, k);
+    mask[b].select(1, j).index_fill_(0, frames, 1.0);
+  }
+  return mask;
+}
+
+// ---------------------------------------------------------------- branch
+
+FlowControlBranchImpl::FlowControlBranchImpl(const FlowTransformerOptions& o) : opt(o) {
+  const int64_t d = o.width;
+  signal_embed = register_module(
+      "signal_embed", nn::Sequential(nn::Linear(o.num_joints * 6, d), nn::SiLU(), nn::Linear(d, d)));
+  signal_zero = register_module("signal_zero", nn::Linear(d, d));
+  blocks = register_module("blocks", nn::ModuleList());
+  zero_out = register_module("zero_out", nn::ModuleList());
+  for (int64_t i = 0; i < o.depth; ++i) {
+    blocks->push_back(FlowBlock(o));
+    zero_out->push_back(nn::Linear(d, d));
+  }
+  // Zero-initialised connections: before training the branch adds exactly nothing.
+  torch::NoGradGuard ng;
+  for (auto& m : signal_embed->modules(false))
+    if (auto* lin = m->as<nn::Linear>()) {
+      nn::init::xavier_uniform_(lin->weight);
+      nn::init::zeros_(lin->bias);
+    }
+  nn::init::zeros_(signal_zero->weight);
+  nn::init::zeros_(signal_zero->bias);
+  for (auto& z : *zero_out) {
+    auto* lin = z->as<nn::Linear>();
+    nn::init::zeros_(lin->weight);
+    nn::init::zeros_(lin->bias);
+  }
+}
+
+void FlowControlBranchImpl::copy_blocks_from(FlowTransformerImpl& base) {
+  TORCH_CHECK(static_cast<int64_t>(base.blocks->size()) == static_cast<int64_t>(blocks->size()),
+              "base has ", base.blocks->size(), " blocks, the branch ", blocks->size());
+  torch::NoGradGuard ng;
+  for (size_t i = 0; i < blocks->size(); ++i) {
+    auto src = base.blocks[i]->named_parameters(true);
+    auto dst = blocks[i]->named_parameters(true);
+    for (auto& kv : dst) kv.value().copy_(src[kv.key()]);
+  }
+}
+
+FlowTransformerOutput FlowControlBranchImpl::forward(FlowTransformerImpl& base, const torch::Tensor& x,
+                                                     const torch::Tensor& t, const torch::Tensor& cond,
+                                                     const torch::Tensor& mask, const torch::Tensor& signal) {
+  const int64_t B = x.size(0), T = x.size(1), J = x.size(2);
+  TORCH_CHECK(J == opt.num_joints && x.size(3) == 3, "ControlNet expects [B, T, ", opt.num_joints, ", 3], got ",
+              x.sizes());
+  TORCH_CHECK(signal.size(0) == B && signal.size(1) == T && signal.size(2) == J && signal.size(3) == 6,
+              "control signal must be [", B, ", ", T, ", ", J, ", 6], got ", signal.sizes());
+  auto pos = torch::arange(T, torch::TensorOptions().dtype(torch::kFloat32).device(x.device()));
+  auto c = base.conditioning(t.to(x.device()).expand({B}), cond);
+  auto key_valid = mask.to(x.device(), torch::kBool);
+  auto h = base.embed(x.reshape({B, T, J * 3}));
+  auto hc = h + signal_zero(signal_embed->forward(signal.to(x.dtype()).reshape({B, T, J * 6})));
+  for (size_t i = 0; i < blocks->size(); ++i) {
+    h = base.blocks[i]->as<FlowBlockImpl>()->forward(h, c, key_valid, pos);
+    hc = blocks[i]->as<FlowBlockImpl>()->forward(hc, c, key_valid, pos);
+    h = h + zero_out[i]->as<nn::Linear>()->forward(hc);
+  }
+  auto m = base.final_ada(torch::silu(c)).chunk(2, -1);
+  auto out = base.head(base.final_norm(h) * (1 + m[1].unsqueeze(1)) + m[0].unsqueeze(1));
+  return {out.view({B, T, J, 3})};
+}
+
+// ---------------------------------------------------------------- runtime
+
+FlowControlNet FlowControlNet::around(FlowPrior base) {
+  FlowControlNet n;
+  n.base_ = std::make_shared<FlowPrior>(std::move(base));
+  auto& tr = *n.base_->net()->transformer;
+  n.branch_ = std::make_shared<FlowControlBranch>(tr.opt);
+  (*n.branch_)->copy_blocks_from(tr);
+  (*n.branch_)->to(n.base_->device());
+  for (auto& p : n.base_->net()->parameters()) p.set_requires_grad(false);
+  return n;
+}
+
+FlowControlNet FlowControlNet::load(const std::string& run_dir, torch::Device device) {
+  fs::path dir(run_dir);
+  fs::path final_pt = dir / "checkpoints" / "final.pt", meta = dir / "outputs" / "controlnet_meta.yaml";
+  if (!fs::is_directory(dir))
+    fail("ControlNet run directory '{}' does not exist; train one with `motionctl train "
+         "configs/prior/flow_controlnet_tiny.yaml`",
+         run_dir);
+  for (const fs::path& p : {dir / "config.yaml", final_pt, meta})
+    if (!fs::exists(p))
+      fail("ControlNet run '{}' is incomplete: '{}' is missing; finish it with `motionctl train {}/config.yaml`",
+           run_dir, p.string(), run_dir);
+  TrainJobConfig job;
+  parse_config(compose_config((dir / "config.yaml").string()), job);
+  if (job.model.type != "flow_controlnet")
+    fail("'{}' is a run of model type '{}', not a ControlNet (flow_controlnet)", run_dir, job.model.type);
+  std::string base_run;
+  try {
+    base_run = YAML::LoadFile(meta.string())["base_run"].as<std::string>();
+  } catch (const YAML::Exception& e) {
+    fail("'{}' is corrupt: {}", meta.string(), e.what());
+  }
+  FlowControlNet n = around(FlowPrior::load(base_run, device));
+  n.run_dir_ = run_dir;
+  try {
+    torch::serialize::InputArchive ar;
+    ar.load_from(final_pt.string());
+    (*n.branch_)->load(ar);
+  } catch (const c10::Error&) {
+    fail("ControlNet checkpoint '{}' is unreadable or does not match its base prior '{}'", final_pt.string(),
+         base_run);
+  }
+  (*n.branch_)->to(device);
+  (*n.branch_)->eval();
+  return n;
+}
+
+torch::Tensor FlowControlNet::raw_velocity(const torch::Tensor& x, const torch::Tensor& t, const torch::Tensor& text,
+                                           const torch::Tensor& mask, const torch::Tensor& signal) const {
+  auto tt = t.to(x.device(), torch::kFloat32).reshape({-1}).expand({x.size(0)});
+  return (*branch_)->forward(*base_->net()->transformer, x, tt, text, mask, signal).velocity;
+}
+
+torch::Tensor FlowControlNet::velocity(const torch::Tensor& x, const torch::Tensor& t, const torch::Tensor& text,
+                                       const torch::Tensor& mask, const torch::Tensor& signal, double text_cfg,
+                                       double control_cfg) const {
+  torch::NoGradGuard ng;
+  const int64_t B = x.size(0);
+  auto tt = t.to(x.device(), torch::kFloat32).reshape({-1}).expand({B});
+  auto vb = base_->raw_velocity(torch::cat({x, x}), torch::cat({tt, tt}), torch::cat({text, base_->null_texts(B)}),
+                                torch::cat({mask, mask}));
+  auto v_text = vb.narrow(0, 0, B), v_null = vb.narrow(0, B, B);
+  auto v_ctrl = raw_velocity(x, tt, text, mask, signal);
+  auto v = v_null + text_cfg * (v_text - v_null) + control_cfg * (v_ctrl - v_text);
+  auto valid = mask.to(torch::kBool).view({B, -1, 1, 1}).expand_as(v);
+  if (!torch::isfinite(v.masked_select(valid)).all().item<bool>())
+    fail("the ControlNet '{}' produced a non-finite velocity (at t = {}); retrain it (lower optim.lr)", run_dir_,
+         tt[0].item<double>());
+  return v;
+}
+
+// ---------------------------------------------------------------- trainer
+
+namespace {
+
+class FlowControlNetTrainer : public Trainable {
+ public:
+  FlowControlNetTrainer(const FlowControlNetConfig& c, const TrainContext& ctx) : cfg_(c), ctx_(ctx) {
+    {
+      // Training the base on demand reseeds torch and may change its thread count;
+      // restoring both keeps this run's result independent of whether the base was
+      // trained now or earlier.
+      auto gen = at::detail::getDefaultCPUGenerator();
+      auto rng = gen.get_state();
+      const int threads = torch::get_num_threads();
+      base_run_ = resolve_prior_run(c.base, &std::cerr);
+      gen.set_state(rng);
+      torch::set_num_threads(threads);
+    }
+    net_ = FlowControlNet::around(FlowPrior::load(base_run_, ctx.device));
+    const FlowPrior& base = net_.base();
+    if (base.num_joints() != ctx.data->num_joints())
+      fail("model.base '{}' has {} joints but data '{}' has {}; train the ControlNet on the base's skeleton",
+           base_run_, base.num_joints(), ctx.data->source(), ctx.data->num_joints());
+    for (int j : c.control_joints)
+      if (j >= base.num_joints())
+        fail("model.control_joints: joint {} is outside the skeleton's {} joints", j, base.num_joints());
+  }
+  nn::Module& module() override { return *net_.branch(); }
+
+  LossOutput loss(const std::vector<int64_t>& idx) override {
+    MotionBatch b = ctx_.data->batch(idx, ctx_.window, 1, ctx_.device);
+    const MotionSet& set = ctx_.data->set();
+    std::vector<std::string> caps;
+    for (int64_t i : idx) {
+      const auto& c = set.captions[i];
+      caps.push_back(c[torch::randint(0, static_cast<int64_t>(c.size()), {1}).item<int64_t>()]);
+    }
+    const int64_t B = idx.size();
+    auto x0 = torch::randn(b.joints.sizes()).to(ctx_.device);
+    auto t = torch::rand({B}).to(ctx_.device);
+    auto drop = (torch::rand({B}) < cfg_.cond_drop).to(ctx_.device);
+    auto cmask = control_mask(b, {});
+    auto parts = losses(b, caps, x0, t, drop, cmask);
+    LossOutput out;
+    out.loss = parts.first + cfg_.control_loss_weight * parts.second;
+    out.parts = {{"fm", parts.first.detach()}, {"ctrl", parts.second.detach()}};
+    return out;
+  }
+
+  // Validation flow and control losses at fixed t with noise and control masks from a
+  // constant-seeded local generator (first caption, whole clips).
+  std::map<std::string, double> evaluate() override {
+    torch::NoGradGuard ng;
+    net_.branch()->eval();
+    auto idx = ctx_.data->split("val");
+    const MotionSet& set = ctx_.data->set();
+    auto gen = at::make_generator<at::CPUGeneratorImpl>(20240612);
+    std::map<std::string, double> out;
+    double fm_total = 0, ctrl_total = 0;
+    for (double tv : cfg_.eval_t) {
+      double fm = 0, ctrl = 0, n = 0;
+      for (size_t s = 0; s < idx.size(); s += 32) {
+        std::vector<int64_t> chunk(idx.begin() + s, idx.begin() + std::min(idx.size(), s + 32));
+        MotionBatch b = ctx_.data->batch(chunk, 0, 1, ctx_.device);
+        std::vector<std::string> caps;
+        for (int64_t i : chunk) caps.push_back(set.captions[i][0]);
+        const int64_t B = chunk.size();
+        auto x0 = torch::randn(b.joints.sizes(), gen, torch::TensorOptions()).to(ctx_.device);
+        auto t = torch::full({B}, tv, torch::TensorOptions().device(ctx_.device));
+        auto drop = torch::zeros({B}, torch::TensorOptions().dtype(torch::kBool).device(ctx_.device));
+        auto p = losses(b, caps, x0, t, drop, control_mask(b, gen));
+        fm += p.first.item<double>() * B;
+        ctrl += p.second.item<double>() * B;
+        n += B;
+      }
+      out[fmt::format("val_fm_t{:.2f}", tv)] = fm / std::max(1.0, n);
+      out[fmt::format("val_ctrl_t{:.2f}", tv)] = ctrl / std::max(1.0, n);
+      fm_total += fm / std::max(1.0, n);
+      ctrl_total += ctrl / std::max(1.0, n);
+    }
+    out["val_fm"] = fm_total / cfg_.eval_t.size();
+    out["val_ctrl"] = ctrl_total / cfg_.eval_t.size();
+    return out;
+  }
+
+  void save_artifacts(const fs::path& outputs) override {
+    YAML::Emitter e;
+    e << YAML::BeginMap << YAML::Key << "base_run" << YAML::Value << base_run_ << YAML::EndMap;
+    write_file_atomic(outputs / "controlnet_meta.yaml", std::string(e.c_str()) + "\n");
+  }
+
+  const FlowControlNet& net() const { return net_; }
+
+ private:
+  torch::Tensor control_mask(const MotionBatch& b, at::Generator gen) {
+    auto len = b.lengths.to(torch::kCPU).contiguous();
+    std::vector<int64_t> lengths(len.data_ptr<int64_t>(), len.data_ptr<int64_t>() + len.numel());
+    return random_control_mask(lengths, b.joints.size(1), b.joints.size(2), cfg_.control_joints,
+                               cfg_.min_controlled_frames, gen)
+        .to(ctx_.device);
+  }
+
+  // (flow loss eq. (2)-(3), L2 on controlled entries of the clean estimate), both
+  // masked means. Targets use the base's normaliser (the data's may differ).
+  std::pair<torch::Tensor, torch::Tensor> losses(const MotionBatch& b, const std::vector<std::string>& caps,
+                                                 const torch::Tensor& x0, const torch::Tensor& t,
+                                                 const torch::Tensor& drop, const torch::Tensor& cmask) {
+    const FlowPrior& base = net_.base();
+    auto valid = b.mask.view({b.mask.size(0), b.mask.size(1), 1, 1}).to(torch::kFloat32);
+    auto x1 = base.normalize(ctx_.data->denormalize(b.joints)) * valid;
+    auto tb = t.view({-1, 1, 1, 1});
+    auto xt = tb * x1 + (1 - tb) * x0;
+    auto cond = base.encode_texts(caps);
+    cond = torch::where(drop.unsqueeze(1), base.null_texts(cond.size(0)), cond);
+    auto cm = cmask * valid;
+    auto v = net_.raw_velocity(xt, t, cond, b.mask, control_signal(x1, cm));
+    auto fm = ((v - (x1 - x0)).pow(2) * valid).sum() / (valid.sum() * x1.size(2) * 3 + 1e-8);
+    auto x1_hat = xt + (1 - tb) * v;
+    auto ctrl = ((x1_hat - x1).pow(2) * cm).sum() / (cm.sum() + 1e-8);
+    return {fm, ctrl};
+  }
+
+  FlowControlNetConfig cfg_;
+  TrainContext ctx_;
+  std::string base_run_;
+  FlowControlNet net_;
+};
+
+}  // namespace
+
+const FlowControlNet* controlnet_of(const Trainable& t) {
+  auto* c = dynamic_cast<const FlowControlNetTrainer*>(&t);
+  return c ? &c->net() : nullptr;
+}
+
+MC_REGISTER_MODEL("flow_controlnet", FlowControlNetConfig,
+                  [](const Config& c, const TrainContext& ctx) -> std::unique_ptr<Trainable> {
+                    return std::make_unique<FlowControlNetTrainer>(dynamic_cast<const FlowControlNetConfig&>(c), ctx);
+                  },
+                  "ACMDM+ControlNet: trainable zero-connected copy of a frozen flow prior's blocks fed joint targets");
+
+}  // namespace mc

@@ -1,0 +1,110 @@
+// ACMDM+ControlNet baseline (model type `flow_controlnet`, reference-facts §2): a
+// trainable copy of a frozen flow prior's blocks fed with joint targets, whose
+// zero-initialised outputs are added after the matching base blocks.
+#pragma once
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "samplers/prior_source.h"
+#include "models/flow_transformer.h"
+#include "samplers/flow_sampler.h"
+
+namespace mc {
+
+struct FlowControlNetConfig : Config {
+  PriorSourceConfig base;  // the finished flow prior it controls (frozen)
+  std::vector<int> control_joints = {0, 10, 11, 15, 20, 21};
+  double control_loss_weight = 1.0;  // weight of the L2 on controlled entries of the clean estimate
+  double cond_drop = 0.1;            // text dropout (the copy sees the null text at CFG's unconditional side)
+  int min_controlled_frames = 1;     // controlled frames per sample: log-uniform in [this, clip length]
+  std::vector<double> eval_t = {0.1, 0.5, 0.9};
+  void visit(FieldVisitor& v) override {
+    v("base", base, "the frozen base flow prior (run_dir, or its training config trained on demand)");
+    v("control_joints", control_joints, "each training sample controls one joint drawn from this list",
+      each(at_least(0)));
+    v("control_loss_weight", control_loss_weight,
+      "weight of the extra L2 loss on the controlled entries of the clean estimate x + (1 - t) v", at_least(0.0));
+    v("cond_drop", cond_drop, "probability of replacing the text by the base's null text", in_range(0.0, 1.0));
+    v("min_controlled_frames", min_controlled_frames,
+      "fewest controlled frames per sample; the count is log-uniform between this and the clip length",
+      at_least(1));
+    v("eval_t", eval_t, "flow times of the validation losses", each(in_range(0.0, 1.0)));
+  }
+  std::string validate() const override {
+    if (control_joints.empty()) return "control_joints needs at least one joint";
+    if (eval_t.empty()) return "eval_t needs at least one flow time";
+    return "";
+  }
+};
+
+// The control signal the branch reads, [B, T, J, 6]: normalised targets x mask
+// (3 channels) and the per-entry mask itself (3 channels), so a target of 0 and
+// "no target" differ. target [B, T, J, 3] normalised, mask [B, T, J, 3] in {0, 1}.
+torch::Tensor control_signal(const torch::Tensor& target, const torch::Tensor& mask);
+
+// Training-time control masks [B, T, J, 3] float: per sample one joint of `joints`,
+// k frames without replacement among its valid ones, k log-uniform in
+// [min_frames, length] (so single keyframes and whole trajectories are both
+// common), all three axes.
+torch::Tensor random_control_mask(const std::vector<int64_t>& lengths, int64_t T, int64_t J,
+                                  const std::vector<int>& joints, int min_frames, at::Generator gen = {});
+
+// The trainable side: copies of the base blocks, a zero-initialised Linear after
+// each, and the signal embedding that enters the copy's input tokens through a
+// zero-initialised Linear. The base itself is not a submodule (it stays frozen
+// and is not saved with the branch).
+struct FlowControlBranchImpl : torch::nn::Module {
+  explicit FlowControlBranchImpl(const FlowTransformerOptions& o);
+  // Initialises the copied blocks from the base's (the zero linears stay zero).
+  void copy_blocks_from(FlowTransformerImpl& base);
+  // Velocity of base + branch: h_i = base_i(h_{i-1}) + zero_i(copy_i(hc_{i-1})),
+  // hc_0 = embed(x) + signal_zero(signal_embed(signal)); the base's embedding,
+  // conditioning and head are used as they are. Arguments as FlowTransformer::forward,
+  // signal [B, T, J, 6] from control_signal().
+  FlowTransformerOutput forward(FlowTransformerImpl& base, const torch::Tensor& x, const torch::Tensor& t,
+                                const torch::Tensor& cond, const torch::Tensor& mask, const torch::Tensor& signal);
+
+  FlowTransformerOptions opt;
+  torch::nn::Sequential signal_embed{nullptr};  // J*6 -> d -> SiLU -> d
+  torch::nn::Linear signal_zero{nullptr};       // d -> d, zero-init
+  torch::nn::ModuleList blocks{nullptr};        // copies of the base blocks
+  torch::nn::ModuleList zero_out{nullptr};      // one d -> d zero-init Linear per block
+};
+TORCH_MODULE(FlowControlBranch);
+
+// A finished `flow_controlnet` run with its base prior: config.yaml,
+// checkpoints/final.pt (branch weights), outputs/controlnet_meta.yaml (base run).
+class FlowControlNet {
+ public:
+  static FlowControlNet load(const std::string& run_dir, torch::Device device = torch::kCPU);
+  // Builds base + freshly initialised branch (zero linears) around a loaded base.
+  static FlowControlNet around(FlowPrior base);
+
+  // One controlled network call (text or null text), no guidance.
+  torch::Tensor raw_velocity(const torch::Tensor& x, const torch::Tensor& t, const torch::Tensor& text,
+                             const torch::Tensor& mask, const torch::Tensor& signal) const;
+  // Separate guidance for text and control; "no control" is the frozen base:
+  //   v = v_base(x, null) + s_text (v_base(x, text) - v_base(x, null))
+  //       + s_ctrl (v_ctrl(x, text, signal) - v_base(x, text)).
+  // s_text = 1, s_ctrl = 1 gives the plain controlled velocity. UserError when not finite.
+  torch::Tensor velocity(const torch::Tensor& x, const torch::Tensor& t, const torch::Tensor& text,
+                         const torch::Tensor& mask, const torch::Tensor& signal, double text_cfg,
+                         double control_cfg) const;
+
+  const FlowPrior& base() const { return *base_; }
+  FlowControlBranch& branch() const { return *branch_; }
+  const std::string& run_dir() const { return run_dir_; }
+
+ private:
+  std::shared_ptr<FlowPrior> base_;
+  std::shared_ptr<FlowControlBranch> branch_;
+  std::string run_dir_;
+};
+
+class Trainable;
+// The ControlNet inside a `flow_controlnet` trainer (nullptr for other models): tests
+// use it to check that training leaves the base untouched.
+const FlowControlNet* controlnet_of(const Trainable& t);
+
+}  // namespace mc

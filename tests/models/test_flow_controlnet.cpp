@@ -1,0 +1,322 @@
+// ACMDM+ControlNet: zero-init equivalence with the base, copied blocks, frozen base
+// under training steps, training control masks, tasks -> control signal (and the
+// error for non-joint constraints), and an end-to-end train + sample.
+#include <catch2/catch.hpp>
+
+#include <ATen/CPUGeneratorImpl.h>
+
+#include <random>
+#include <set>
+
+#include "core/error.h"
+#include "data/motion_set.h"
+#include "models/flow_controlnet.h"
+#include "samplers/controlnet_generator.h"
+#include "samplers/flow_test_prior.h"
+#include "samplers/motion_generator.h"
+#include "test_util.h"
+#include "train/motion_dataset.h"
+#include "train/train_job.h"
+#include "train/trainable.h"
+
+using namespace mc;
+using namespace mc::test;
+
+namespace {
+
+template <class F>
+std::string user_error_of(F&& f) {
+  try {
+    f();
+  } catch (const UserError& e) {
+    return e.what();
+  }
+  return "";
+}
+
+std::vector<float> random_clip(int T, unsigned seed) {
+  std::mt19937 rng(seed);
+  std::uniform_real_distribution<float> u(-1.0f, 1.0f);
+  std::vector<float> v(static_cast<size_t>(T) * 22 * 3);
+  for (auto& x : v) x = u(rng);
+  return v;
+}
+
+ControlTask make_task(const std::string& id, int T, const std::string& spec_yaml, unsigned seed) {
+  ControlTask t;
+  t.id = id;
+  t.clip_id = id;
+  t.caption = "a person walks forward";
+  t.length = T;
+  t.spec = parse_constraint_spec_yaml(spec_yaml, id + ".yaml");
+  t.source = random_clip(T, seed);
+  return t;
+}
+
+// Random clips of the given lengths on the HumanML3D skeleton (world metres).
+MotionSet random_set(const std::vector<int>& lengths, unsigned seed) {
+  MotionSet m;
+  m.skeleton = humanml3d_skeleton();
+  m.fps = 20;
+  m.t_max = 40;
+  m.lengths = lengths;
+  m.joints.assign(lengths.size() * m.clip_stride(), 0.0f);
+  std::mt19937 rng(seed);
+  std::normal_distribution<float> n(0.0f, 0.5f);
+  for (size_t i = 0; i < lengths.size(); ++i) {
+    for (int t = 0; t < lengths[i]; ++t)
+      for (int j = 0; j < 22; ++j)
+        for (int a = 0; a < 3; ++a) m.at(i, t, j)[a] = n(rng) + (a == 1 ? 0.9f : 0.0f);
+    m.ids.push_back("clip" + std::to_string(i));
+    m.splits.push_back(i % 4 == 3 ? "val" : "train");
+    m.captions.push_back({"a person walks number " + std::to_string(i % 4), "a person jumps"});
+  }
+  NormStats st;
+  st.joint_mean = {0.0f, 0.9f, 0.0f};
+  st.joint_std = {0.5f, 0.5f, 0.5f};
+  m.stats = st;
+  return m;
+}
+
+struct GeneratorJob : Config {
+  Component generator{"generator"};
+  void visit(FieldVisitor& v) override { v("generator", generator, "the generator under test"); }
+};
+
+}  // namespace
+
+TEST_CASE("ControlNet: zero-initialised branch gives exactly the base's velocity", "[controlnet]") {
+  TempDir dir("cn_zero");
+  write_random_prior_run(dir.path);
+  FlowControlNet net = FlowControlNet::around(FlowPrior::load(dir.path.string()));
+  const FlowPrior& base = net.base();
+  torch::manual_seed(2);
+  const int64_t B = 3, T = 30;
+  auto x = torch::randn({B, T, 22, 3});
+  auto t = torch::rand({B});
+  auto mask = torch::ones({B, T}, torch::kBool);
+  mask[2].narrow(0, 20, 10).fill_(false);
+  auto cmask = (torch::rand({B, T, 22, 3}) < 0.2).to(torch::kFloat32);
+  auto signal = control_signal(torch::randn({B, T, 22, 3}), cmask);
+  auto text = base.encode_texts({"a person walks", "a person jumps", "forward"});
+  torch::NoGradGuard ng;
+  auto vb = base.raw_velocity(x, t, text, mask);
+  auto vc = net.raw_velocity(x, t, text, mask, signal);
+  REQUIRE(vb.abs().max().item<double>() > 1e-3);  // a real (non-zero) base velocity
+  auto valid = mask.view({B, T, 1, 1}).expand_as(vb);
+  CHECK(torch::equal(vb.masked_select(valid), vc.masked_select(valid)));
+  // Guided: with v_ctrl = v_text the control term vanishes and text CFG is the base's.
+  auto g = net.velocity(x, t, text, mask, signal, 2.5, 1.75);
+  auto gb = base.velocity(x, t, text, mask, 2.5);
+  INFO("max |guided - base guided| " << (g - gb).masked_select(valid).abs().max().item<double>() << ", max |v| "
+                                      << gb.abs().max().item<double>());
+  CHECK(torch::allclose(g.masked_select(valid), gb.masked_select(valid), 1e-4, 1e-5));
+  // The copied blocks start as the base's.
+  auto& tr = *base.net()->transformer;
+  for (size_t i = 0; i < tr.blocks->size(); ++i) {
+    auto src = tr.blocks[i]->named_parameters(true);
+    for (auto& kv : net.branch()->blocks[i]->named_parameters(true)) CHECK(torch::equal(kv.value(), src[kv.key()]));
+  }
+  // Control signal layout: targets x mask, then the mask.
+  auto tgt = torch::full({1, 1, 22, 3}, 2.0f);
+  auto m = torch::zeros({1, 1, 22, 3});
+  m[0][0][5][1] = 1;
+  auto s = control_signal(tgt, m);
+  REQUIRE(s.size(3) == 6);
+  CHECK(s.sum().item<double>() == Approx(3.0));
+  CHECK(s[0][0][5][1].item<double>() == 2.0);
+  CHECK(s[0][0][5][4].item<double>() == 1.0);
+}
+
+TEST_CASE("ControlNet training masks: one listed joint, 1..length frames, valid frames only", "[controlnet]") {
+  auto gen = at::make_generator<at::CPUGeneratorImpl>(9);
+  std::vector<int64_t> lengths = {40, 12, 1, 25, 33, 7, 40, 40};
+  std::vector<int> joints = {0, 10, 11, 15, 20, 21};
+  std::set<int64_t> counts;
+  for (int rep = 0; rep < 20; ++rep) {
+    auto m = random_control_mask(lengths, 40, 22, joints, 1, gen);
+    for (size_t b = 0; b < lengths.size(); ++b) {
+      torch::Tensor per_joint = m[static_cast<int64_t>(b)].sum(std::vector<int64_t>{0, 2});  // [J]
+      auto nz = per_joint.nonzero();
+      REQUIRE(nz.size(0) == 1);
+      const int j = static_cast<int>(nz[0][0].item().toLong());
+      CHECK(std::find(joints.begin(), joints.end(), j) != joints.end());
+      auto frames = m[b].select(1, j).sum(1);  // [T] in {0, 3}
+      int64_t k = (frames > 0).sum().item<int64_t>();
+      CHECK(k >= 1);
+      CHECK(k <= lengths[b]);
+      CHECK(frames.narrow(0, lengths[b], 40 - lengths[b]).sum().item<double>() == 0.0);
+      CHECK(((frames == 0) | (frames == 3)).all().item<bool>());
+      if (lengths[b] == 40) counts.insert(k);
+    }
+  }
+  // Densities vary: sparse keyframes and dense trajectories both occur.
+  CHECK(*counts.begin() <= 3);
+  CHECK(*counts.rbegin() >= 20);
+  // Same generator seed, same masks.
+  auto g1 = at::make_generator<at::CPUGeneratorImpl>(4), g2 = at::make_generator<at::CPUGeneratorImpl>(4);
+  CHECK(torch::equal(random_control_mask(lengths, 40, 22, joints, 1, g1),
+                     random_control_mask(lengths, 40, 22, joints, 1, g2)));
+}
+
+TEST_CASE("ControlNet trainer: base frozen, branch learns, losses finite", "[controlnet]") {
+  TempDir dir("cn_train");
+  write_random_prior_run(dir.path / "base");
+  auto data = std::make_shared<MotionDataset>(random_set({40, 30, 36, 40, 22, 40, 28, 35}, 3), "random");
+  TrainJobConfig job;
+  parse_config(config_from_string(fmt::format("model:\n  type: flow_controlnet\n  base:\n    run_dir: {}\n",
+                                              (dir.path / "base").string())),
+               job);
+  TrainContext ctx{data, torch::kCPU, &job, 0};
+  auto tr = make_trainable(job.model, ctx);
+  FlowPrior base_copy = FlowPrior::load((dir.path / "base").string());
+  const FlowControlNet* cn = controlnet_of(*tr);
+  REQUIRE(cn != nullptr);
+  auto base_params = cn->base().net()->parameters();
+  std::vector<torch::Tensor> before;
+  for (auto& p : base_params) before.push_back(p.detach().clone());
+  auto params = tr->trainable_parameters();
+  // Only the branch is optimised (copied blocks + zero linears + signal embedding).
+  REQUIRE(params.size() == cn->branch()->parameters().size());
+  for (auto& p : params)
+    for (auto& q : base_params) CHECK_FALSE(p.is_same(q));
+  for (auto& p : base_params) CHECK_FALSE(p.requires_grad());
+  torch::optim::AdamW opt(params, torch::optim::AdamWOptions(1e-2));
+  torch::manual_seed(1);
+  for (int s = 0; s < 4; ++s) {
+    LossOutput out = tr->loss({0, 1, 2, 4, 5, 6});
+    REQUIRE(std::isfinite(out.loss.item<double>()));
+    REQUIRE(out.parts.size() == 2);
+    opt.zero_grad();
+    out.loss.backward();
+    opt.step();
+  }
+  // The branch can fit: on one fixed batch (same noise, t and control masks) the
+  // control loss falls well below the zero-initialised branch's.
+  auto fixed_loss = [&] {
+    torch::manual_seed(77);
+    return tr->loss({0, 1, 2, 4});
+  };
+  double ctrl0 = 0;
+  for (auto& [k, v] : fixed_loss().parts)
+    if (k == "ctrl") ctrl0 = v.item<double>();
+  double ctrl1 = 0;
+  for (int s = 0; s < 25; ++s) {
+    LossOutput out = fixed_loss();
+    for (auto& [k, v] : out.parts)
+      if (k == "ctrl") ctrl1 = v.item<double>();
+    opt.zero_grad();
+    out.loss.backward();
+    opt.step();
+  }
+  INFO("control loss on a fixed batch: " << ctrl0 << " -> " << ctrl1);
+  CHECK(ctrl1 < 0.5 * ctrl0);
+  for (size_t i = 0; i < base_params.size(); ++i) CHECK(torch::equal(base_params[i], before[i]));
+  auto& bz = cn->branch()->zero_out;
+  double moved = 0;
+  for (auto& z : *bz) moved += z->as<torch::nn::Linear>()->weight.abs().sum().item<double>();
+  CHECK(moved > 0);
+  // After training steps the control signal changes the velocity.
+  torch::NoGradGuard ng;
+  auto x = torch::randn({1, 40, 22, 3});
+  auto t = torch::full({1}, 0.5);
+  auto mask = torch::ones({1, 40}, torch::kBool);
+  auto text = base_copy.encode_texts({"a person walks"});
+  auto sig = control_signal(torch::randn({1, 40, 22, 3}), torch::ones({1, 40, 22, 3}));
+  auto v_ctrl = cn->raw_velocity(x, t, text, mask, sig);
+  auto v_base = base_copy.raw_velocity(x, t, text, mask);
+  CHECK((v_ctrl - v_base).abs().max().item<double>() > 1e-6);
+  auto ev = tr->evaluate();
+  CHECK(std::isfinite(ev["val_fm"]));
+  CHECK(std::isfinite(ev["val_ctrl"]));
+}
+
+TEST_CASE("ControlNet control targets: keyframe/trajectory selections only", "[controlnet]") {
+  TempDir dir("cn_targets");
+  write_random_prior_run(dir.path);
+  FlowPrior base = FlowPrior::load(dir.path.string());
+  std::vector<ControlTask> tasks = {
+      make_task("k", 20, "- {type: keyframe, joints: [0, l_wrist], frames: [3, 9], axes: xz, from_source: true}\n", 1),
+      make_task("t", 16, "- {type: trajectory, joints: [head], values: [[1.0, 2.0, 3.0]], frames: [4]}\n", 2),
+  };
+  ControlTargets ct = control_targets(base, tasks, 24);
+  REQUIRE(ct.target.sizes() == torch::IntArrayRef({2, 24, 22, 3}));
+  CHECK(ct.mask[0].sum().item<double>() == 8);  // 2 joints x 2 frames x 2 axes
+  CHECK(ct.mask[1].sum().item<double>() == 3);
+  // Targets are the base-normalised world values: (y - mean) / std.
+  const float* src = tasks[0].source.data() + (9 * 22 + 20) * 3;
+  CHECK(ct.target[0][9][20][2].item<double>() == Approx((src[2] - 0.1) / 0.8).epsilon(1e-5));
+  CHECK(ct.mask[0][9][20][1].item<double>() == 0.0);
+  CHECK(ct.target[1][4][15][1].item<double>() == Approx((2.0 - 0.9) / 0.4).epsilon(1e-5));
+
+  std::vector<ControlTask> bad = {make_task(
+      "cam", 10,
+      "- {type: keyframe, joints: [0], frames: [1], from_source: true}\n"
+      "- {type: camera_2d, name: side view, joints: [15], camera: {scale: 1.0, yaw_deg: 30}, from_source: true}\n",
+      3)};
+  std::string e = user_error_of([&] { control_targets(base, bad, 10); });
+  INFO(e);
+  CHECK(e.find("task 'cam'") != std::string::npos);
+  CHECK(e.find("item 1 'side view' (camera_2d)") != std::string::npos);
+  CHECK(e.find("only takes joint positions") != std::string::npos);
+}
+
+TEST_CASE("ControlNet end to end: flow_tiny base on demand, train, sample through the generator",
+          "[controlnet][slow]") {
+  TempDir t("cn_e2e");
+  std::string data = (t.path / "fx.h5").string();
+  auto fx = run_motionctl(fmt::format("fixture configs/data/smoke.yaml output={} fixture.num_clips=40", data));
+  REQUIRE(fx.exit_code == 0);
+  std::string base_ov = fmt::format("[optim.steps=20, optim.batch_size=8, optim.warmup=5, data.path={}, run.root={}, "
+                                    "run.name=base, run.threads=1, run.log_every=10, run.checkpoint_every=20]",
+                                    data, t.path.string());
+  TrainResult r = run_train(
+      "configs/prior/flow_controlnet_tiny.yaml",
+      {"model.base.overrides=" + base_ov, "optim.steps=24", "optim.batch_size=8", "optim.warmup=4",
+       "data.path=" + data, "run.root=" + t.path.string(), "run.name=cn", "run.threads=1", "run.log_every=8",
+       "run.checkpoint_every=24"});
+  fs::path cn_dir = t.path / "prior" / "cn";
+  REQUIRE(r.run_dir == cn_dir);
+  CHECK(fs::exists(t.path / "prior" / "base" / "DONE"));
+  for (auto f : {"checkpoints/final.pt", "outputs/controlnet_meta.yaml", "DONE"}) CHECK(fs::exists(cn_dir / f));
+  CHECK(std::isfinite(r.summary["val_ctrl"]));
+  CHECK(std::isfinite(r.summary["val_fm"]));
+
+  // Same config with the base already trained: the same branch (training the base on
+  // demand must not disturb the ControlNet's RNG stream).
+  TrainResult r2 = run_train(
+      "configs/prior/flow_controlnet_tiny.yaml",
+      {"model.base.overrides=" + base_ov, "optim.steps=24", "optim.batch_size=8", "optim.warmup=4",
+       "data.path=" + data, "run.root=" + t.path.string(), "run.name=cn2", "run.threads=1", "run.log_every=8",
+       "run.checkpoint_every=24"});
+  {
+    FlowControlNet a = FlowControlNet::load(cn_dir.string()), b = FlowControlNet::load(r2.run_dir.string());
+    auto pa = a.branch()->parameters(), pb = b.branch()->parameters();
+    REQUIRE(pa.size() == pb.size());
+    for (size_t i = 0; i < pa.size(); ++i) CHECK(torch::equal(pa[i], pb[i]));
+  }
+
+  GeneratorJob job;
+  parse_config(config_from_string(fmt::format("generator:\n  type: flow_controlnet\n  controlnet:\n    run_dir: {}\n"
+                                              "  steps: 10\n",
+                                              cn_dir.string())),
+               job);
+  auto gen = as_generator(job.generator).make(GeneratorContext{});
+  CHECK(gen->describe().find("ControlNet") != std::string::npos);
+  std::vector<ControlTask> tasks = {
+      make_task("a", 60, "- {type: trajectory, joints: [pelvis], from_source: true}\n", 5),
+      make_task("b", 45, "- {type: keyframe, joints: [l_wrist, r_foot], frames: [0, 20, 44], from_source: true}\n",
+                6),
+  };
+  GeneratedMotions g = gen->generate(tasks, 4);
+  CHECK(g.world.sizes() == torch::IntArrayRef({2, 60, 22, 3}));
+  CHECK(g.lengths == std::vector<int>{60, 45});
+  CHECK(torch::isfinite(g.world).all().item<bool>());
+  CHECK(g.world[1].narrow(0, 45, 15).abs().sum().item<double>() == 0.0);
+  GeneratedMotions again = gen->generate(tasks, 4);
+  CHECK(torch::equal(g.world, again.world));
+  tasks[1].spec = parse_constraint_spec_yaml("- {type: planar_root, name: route, from_source: true}\n", "b.yaml");
+  std::string e = user_error_of([&] { gen->generate(tasks, 4); });
+  CHECK(e.find("item 0 'route' (planar_root)") != std::string::npos);
+  CHECK(e.find("only takes joint positions") != std::string::npos);
+}

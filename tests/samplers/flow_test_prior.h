@@ -1,0 +1,48 @@
+// Test helper: a complete run directory of an untrained (random-weight) tiny flow
+// prior, as training writes it, for DNO and ControlNet tests.
+#pragma once
+#include <yaml-cpp/yaml.h>
+
+#include <string>
+#include <vector>
+
+#include "core/atomic_file.h"
+#include "core/config.h"
+#include "data/skeleton.h"
+#include "models/flow_prior.h"
+#include "train/trainer.h"
+
+namespace mc::test {
+
+inline void write_random_prior_run(const std::filesystem::path& dir, int t_max = 40, uint64_t seed = 5,
+                                   double weight_std = 0.1) {
+  const std::vector<std::string> words = {"<pad>", "<unk>", "<sos>", "<eos>", "a",     "person",
+                                          "walks", "jumps", "forward", "number", "0",  "1", "2", "3"};
+  TrainJobConfig job;
+  parse_config(config_from_string("model:\n  type: flow_prior\n  depth: 2\n  width: 64\n  heads: 2\n"
+                                  "  text_width: 32\n  text_heads: 4\n  text_ff: 64\n  text_layers: 1\n"),
+               job);
+  write_file_atomic(dir / "config.yaml", dump_config(job));
+  std::string w;
+  for (auto& s : words) w += s + "\n";
+  write_file_atomic(dir / "outputs" / "vocab.txt", w);
+  YAML::Emitter e;
+  e << YAML::BeginMap << YAML::Key << "fps" << YAML::Value << 20.0 << YAML::Key << "t_max" << YAML::Value << t_max
+    << YAML::Key << "num_joints" << YAML::Value << 22 << YAML::Key << "data" << YAML::Value << "" << YAML::Key
+    << "skeleton" << YAML::Value << YAML::Literal << skeleton_to_yaml(humanml3d_skeleton()) << YAML::EndMap;
+  write_file_atomic(dir / "outputs" / "prior_meta.yaml", std::string(e.c_str()) + "\n");
+  torch::manual_seed(seed);
+  FlowPriorNet net(static_cast<int>(words.size()), 22, job.model.as<FlowPriorConfig>());
+  {
+    torch::NoGradGuard ng;
+    for (auto& p : net->parameters()) p.normal_(0.0, weight_std);
+    net->joint_mean.copy_(torch::tensor({0.0f, 0.9f, 0.1f}));
+    net->joint_std.copy_(torch::tensor({0.5f, 0.4f, 0.8f}));
+  }
+  torch::serialize::OutputArchive ar;
+  net->save(ar);
+  std::filesystem::create_directories(dir / "checkpoints");
+  ar.save_to((dir / "checkpoints" / "final.pt").string());
+}
+
+}  // namespace mc::test
