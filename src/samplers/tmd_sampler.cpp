@@ -181,15 +181,17 @@ at::Generator sample_generator(uint64_t seed, int64_t index) {
   return at::make_generator<at::CPUGeneratorImpl>(s);
 }
 
-// [B, rows, L] uniforms, row b from gens[b].
-torch::Tensor draw_uniform(std::vector<at::Generator>& gens, int64_t rows, int64_t L) {
+// [B, rows, L] uniforms, row b from gens[b]. Every draw takes `full` >= L numbers per
+// row so a generator's stream does not depend on the batch's padded length L.
+torch::Tensor draw_uniform(std::vector<at::Generator>& gens, int64_t rows, int64_t L, int64_t full) {
   std::vector<torch::Tensor> out;
-  for (auto& g : gens) out.push_back(torch::rand({rows, L}, g, torch::TensorOptions()));
+  for (auto& g : gens) out.push_back(torch::rand({rows, full}, g, torch::TensorOptions()).narrow(1, 0, L));
   return torch::stack(out);
 }
 
 struct Batch {
   int64_t start = 0, B = 0, L = 0;
+  int64_t full = 0;          // the prior's maximum token count (random draws are this long)
   std::vector<std::string> captions;
   torch::Tensor valid;       // [B, L] bool on the prior's device
   torch::Tensor n_tokens;    // [B] int64 CPU
@@ -218,6 +220,7 @@ TokenSampleResult run_sampler(const TokenPrior& prior, const std::vector<std::st
   for (int64_t start = 0; start < N; start += batch_size) {
     Batch b;
     b.start = start;
+    b.full = prior.max_tokens();
     b.B = std::min<int64_t>(batch_size, N - start);
     b.captions.assign(captions.begin() + start, captions.begin() + start + b.B);
     b.n_tokens = torch::zeros({b.B}, torch::kInt64);
@@ -257,14 +260,15 @@ TokenSampleResult sample_tmd(const TokenPrior& prior, const std::vector<std::str
   return run_sampler(prior, captions, lengths, cfg.batch_size, seed, [&](Batch& b) {
     // Start from uniform random tokens (the t = 0 marginal of eq. (18)).
     std::vector<torch::Tensor> init;
-    for (auto& g : b.gens) init.push_back(torch::randint(0, K, {b.L}, g, torch::TensorOptions().dtype(torch::kInt64)));
+    for (auto& g : b.gens)
+      init.push_back(torch::randint(0, K, {b.full}, g, torch::TensorOptions().dtype(torch::kInt64)).narrow(0, 0, b.L));
     auto x = torch::stack(init).to(dev);
     auto text = prior.encode_texts(b.captions);
     const double h = 1.0 / cfg.steps;
     for (int k = 0; k < cfg.steps; ++k) {
       const double t = k * h;
       auto logits = prior.guided_logits(x, torch::full({b.B}, t), text, b.valid, cfg.cfg_scale);
-      auto u = draw_uniform(b.gens, 3, b.L).to(dev);
+      auto u = draw_uniform(b.gens, 3, b.L, b.full).to(dev);
       auto probs = torch::softmax(logits / cfg.temperature, -1);
       const bool last = k + 1 == cfg.steps;
       const std::string& rule = last ? cfg.last_step : cfg.proposal;
@@ -304,7 +308,7 @@ TokenSampleResult sample_masked(const TokenPrior& prior, const std::vector<std::
       auto logits = prior.guided_logits(ids, torch::Tensor(), text, b.valid, cfg.cfg_scale);
       auto thresh = std::get<0>(logits.topk(keep, -1)).narrow(-1, keep - 1, 1);
       auto filtered = logits.masked_fill(logits < thresh, -std::numeric_limits<float>::infinity());
-      auto u = draw_uniform(b.gens, 1, b.L).to(dev).select(1, 0);
+      auto u = draw_uniform(b.gens, 1, b.L, b.full).to(dev).select(1, 0);
       auto pred = categorical_from_uniform(torch::softmax(filtered / cfg.temperature, -1), u);
       ids = torch::where(is_mask, pred, ids);
       auto conf = torch::softmax(logits, -1).gather(-1, pred.unsqueeze(-1)).squeeze(-1);
