@@ -7,7 +7,9 @@
 
 #include "control/anchors.h"
 #include "control/route_basis.h"
+#include "core/config.h"
 #include "core/error.h"
+#include "eval/metrics.h"
 #include "samplers/anchor_loss.h"
 #include "samplers/route_solver.h"
 
@@ -89,6 +91,11 @@ TEST_CASE("batched anchor losses match the per-set Eigen ones and are differenti
   }
   CHECK(err[0][4].item<double>() == 0.0);  // padding
   CHECK(mean_control_error(gt, batch).item<double>() < 1e-6);
+  // The AnchorRoute control error is eval's pooled control_error over the same entries.
+  std::vector<std::vector<double>> per;
+  for (int b = 0; b < 2; ++b) per.push_back(mc::anchor_errors(sets[b], wc[b].data_ptr<float>(), J));
+  CHECK(mean_control_error(world, batch).item<double>() ==
+        Approx(control_metrics_from_errors(per).control_error).epsilon(1e-5));
   // Gradient: only anchored entries receive it, planar anchors never on y.
   auto x = world.clone().set_requires_grad(true);
   anchor_loss(x, batch).sum().backward();
@@ -203,4 +210,17 @@ TEST_CASE("RouteSolver: per-sample results do not depend on the batch; bad input
   auto far = p.anchors;
   far[0].anchors[0].frame = 47;
   CHECK_THROWS_AS(solver.refine(p.ids, far, 0, {40, 48, 48}), UserError);
+}
+
+TEST_CASE("RouteSolverConfig: variants by name, bad values rejected", "[routesolver]") {
+  RouteSolverConfig c;
+  parse_config(config_from_string("steps: 500\nupdate: plain\nbasis: cubic\nactivity: shuffled\n"), c);
+  CHECK(c.steps == 500);
+  CHECK(c.update == "plain");
+  CHECK(c.basis == "cubic");
+  CHECK(c.activity == "shuffled");
+  RouteSolverConfig d;
+  CHECK_THROWS_AS(parse_config(config_from_string("basis: linear\n"), d), UserError);
+  CHECK_THROWS_AS(parse_config(config_from_string("rho_f: 0\n"), d), UserError);
+  CHECK_THROWS_AS(parse_config(config_from_string("optimiser: adam\n"), d), UserError);
 }
