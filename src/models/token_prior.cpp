@@ -1,0 +1,407 @@
+// The token priors' configs, text encoder and network bundle, the TMD corruption
+// maths, and one trainer for both `tmd_prior` (eqs. (17)-(20)) and `masked_prior`.
+#include "models/token_prior.h"
+
+#include <ATen/CPUGeneratorImpl.h>
+#include <yaml-cpp/yaml.h>
+
+#include <algorithm>
+#include <cmath>
+#include <mutex>
+
+#include "core/atomic_file.h"
+#include "core/error.h"
+#include "data/skeleton.h"
+#include "data/text_vocab.h"
+#include "models/flow_prior.h"
+#include "models/vq_tokenizer.h"
+#include "train/train_job.h"
+#include "train/trainable.h"
+
+namespace mc {
+namespace nn = torch::nn;
+namespace F = torch::nn::functional;
+
+// ---------------------------------------------------------------- config
+
+void TokenPriorConfig::visit(FieldVisitor& v) {
+  v("depth", depth, "transformer blocks", in_range(1, 64));
+  v("width", width, "hidden size d", at_least(8));
+  v("heads", heads, "attention heads; width / heads must be even (RoPE)", at_least(1));
+  v("mlp_hidden", mlp_hidden, "SwiGLU hidden size (0 = 8/3 * width rounded up to a multiple of 64)", at_least(0));
+  v("dropout", dropout, "dropout on attention probabilities and the MLP hidden", in_range(0.0, 0.9));
+  v("cond_drop", cond_drop, "probability of replacing the text by the learned null condition (for CFG)",
+    in_range(0.0, 1.0));
+  v("text_width", text_width, "text encoder width (pooled vector and text memory size)", at_least(8));
+  v("text_layers", text_layers, "text transformer encoder layers", in_range(1, 12));
+  v("text_heads", text_heads, "text encoder attention heads", at_least(1));
+  v("text_ff", text_ff, "text encoder feed-forward size", at_least(8));
+  v("text_dropout", text_dropout, "text encoder dropout", in_range(0.0, 0.9));
+  v("max_words", max_words, "caption length cap in tokens (incl. <sos>/<eos>)", in_range(4, 256));
+  v("tokenizer_run", tokenizer_run, "finished vq_tokenizer run directory ('' = train tokenizer_config on demand)");
+  v("tokenizer_config", tokenizer_config, "tokenizer training config run on demand when tokenizer_run is ''");
+  v("tokenizer_overrides", tokenizer_overrides, "key=value overrides for tokenizer_config (e.g. run.root=...)");
+  v("eval_t", eval_t, "times (TMD) / mask times (masked) at which evaluate() reports the validation CE",
+    each(in_range(0.0, 0.999)));
+  visit_extra(v);
+}
+
+void TmdPriorConfig::visit_extra(FieldVisitor& v) {
+  v("beta_c", beta_c, "c of beta(t) = c (t/(1-t))^a, eq. (18)", positive<double>());
+  v("beta_a", beta_a, "a of beta(t) = c (t/(1-t))^a, eq. (18)", positive<double>());
+  v("t_eps", t_eps, "training times are drawn from U[0, 1 - t_eps)", in_range(1e-6, 0.5));
+}
+
+std::string TokenPriorConfig::validate() const {
+  if (width % heads != 0) return fmt::format("width {} is not a multiple of heads {}", width, heads);
+  if ((width / heads) % 2 != 0) return fmt::format("head size width/heads = {} must be even for RoPE", width / heads);
+  if (text_width % text_heads != 0)
+    return fmt::format("text_width {} is not a multiple of text_heads {}", text_width, text_heads);
+  if (tokenizer_run.empty() && tokenizer_config.empty())
+    return "set model.tokenizer_run (a finished vq_tokenizer run) or model.tokenizer_config";
+  if (eval_t.empty()) return "eval_t needs at least one time";
+  return "";
+}
+
+TokenTransformerOptions TokenPriorConfig::transformer_options(int64_t num_codes) const {
+  TokenTransformerOptions o;
+  o.num_codes = num_codes;
+  o.num_special = 1;
+  o.depth = depth;
+  o.width = width;
+  o.heads = heads;
+  o.mlp_hidden = mlp_hidden;
+  o.dropout = dropout;
+  o.text_dim = text_width;
+  o.use_time = is_tmd();
+  return o;
+}
+
+// ---------------------------------------------------------------- TMD maths
+
+torch::Tensor tmd_beta(const torch::Tensor& t, double c, double a) {
+  return c * torch::pow(t / (1 - t), a);  // eq. (18)
+}
+
+torch::Tensor tmd_beta_prime(const torch::Tensor& t, double c, double a) {
+  return c * a * torch::pow(t / (1 - t), a - 1) / (1 - t).pow(2);
+}
+
+torch::Tensor tmd_path_probs(const torch::Tensor& dist, const torch::Tensor& x1, const torch::Tensor& beta) {
+  auto rows = F::embedding(x1, dist);                        // d(., x1) = d(x1, .) [..., K]
+  return torch::softmax(-beta.unsqueeze(-1) * rows, -1);     // eq. (18)
+}
+
+// ---------------------------------------------------------------- masking
+
+int64_t masked_train_count(int64_t n, double t) {
+  auto m = static_cast<int64_t>(std::llround(static_cast<double>(n) * std::cos(M_PI * t / 2)));
+  return std::clamp<int64_t>(m, 1, std::max<int64_t>(1, n));
+}
+
+int64_t masked_sample_count(int64_t n, int step, int steps) {
+  double t = steps > 1 ? static_cast<double>(step) / (steps - 1) : 0.0;
+  return masked_train_count(n, t);
+}
+
+// ---------------------------------------------------------------- text
+
+TokenTextEncoderImpl::TokenTextEncoderImpl(int vocab_size, const TokenPriorConfig& c) {
+  embedding = register_module("embedding",
+                              nn::Embedding(nn::EmbeddingOptions(vocab_size, c.text_width).padding_idx(TextVocab::kPad)));
+  position = register_module("position", nn::Embedding(c.max_words, c.text_width));
+  auto layer = nn::TransformerEncoderLayer(nn::TransformerEncoderLayerOptions(c.text_width, c.text_heads)
+                                               .dim_feedforward(c.text_ff)
+                                               .dropout(c.text_dropout)
+                                               .activation(torch::kGELU));
+  encoder = register_module("encoder", nn::TransformerEncoder(nn::TransformerEncoderOptions(layer, c.text_layers)));
+  norm = register_module("norm", nn::LayerNorm(nn::LayerNormOptions({c.text_width})));
+  out = register_module("out", nn::Linear(c.text_width, c.text_width));
+  torch::NoGradGuard ng;
+  nn::init::normal_(embedding->weight, 0.0, 0.02);
+  embedding->weight[TextVocab::kPad].zero_();
+  nn::init::normal_(position->weight, 0.0, 0.02);
+}
+
+TextContext TokenTextEncoderImpl::forward(const torch::Tensor& ids, const torch::Tensor& lengths) {
+  const int64_t L = ids.size(1);
+  auto dev = ids.device();
+  auto pos = torch::arange(L, torch::TensorOptions().dtype(torch::kInt64).device(dev));
+  auto h = embedding(ids) + position(pos).unsqueeze(0);
+  auto valid = pos.unsqueeze(0) < lengths.to(dev).unsqueeze(1);  // [B, W]
+  h = encoder->forward(h.transpose(0, 1), torch::Tensor(), valid.logical_not()).transpose(0, 1);
+  auto m = valid.unsqueeze(-1).to(h.dtype());
+  TextContext c;
+  c.pooled = out(norm((h * m).sum(1) / m.sum(1).clamp_min(1.0)));
+  // Padding states are finite but unused: cross-attention masks them out.
+  c.memory = norm(h) * m;
+  c.memory_valid = valid;
+  return c;
+}
+
+// ---------------------------------------------------------------- bundle
+
+TokenPriorNetImpl::TokenPriorNetImpl(int vocab_size, int64_t num_codes, const TokenPriorConfig& c) {
+  text = register_module("text", TokenTextEncoder(vocab_size, c));
+  transformer = register_module("transformer", TokenTransformer(c.transformer_options(num_codes)));
+  null_text = register_parameter("null_text", torch::randn({c.text_width}) * 0.02);
+  null_memory = register_parameter("null_memory", torch::randn({c.text_width}) * 0.02);
+  distance = register_buffer("distance", torch::zeros({num_codes, num_codes}));
+}
+
+TextContext TokenPriorNetImpl::encode_text(const torch::Tensor& ids, const torch::Tensor& lengths) {
+  return text->forward(ids, lengths);
+}
+
+TextContext TokenPriorNetImpl::null_context(int64_t B, int64_t W) {
+  const auto dev = null_text.device();
+  TextContext c;
+  c.pooled = null_text.unsqueeze(0).expand({B, -1});
+  auto first = torch::zeros({W}, torch::TensorOptions().dtype(torch::kBool).device(dev));
+  first[0] = true;
+  c.memory = null_memory.view({1, 1, -1}) * first.view({1, W, 1}).to(null_memory.dtype());
+  c.memory = c.memory.expand({B, W, -1});
+  c.memory_valid = first.unsqueeze(0).expand({B, W});
+  return c;
+}
+
+TextContext TokenPriorNetImpl::drop_condition(const TextContext& c, const torch::Tensor& drop) {
+  const int64_t B = c.pooled.size(0), W = c.memory.size(1);
+  auto n = null_context(B, W);
+  auto d = drop.to(c.pooled.device(), torch::kBool);
+  TextContext out;
+  out.pooled = torch::where(d.view({B, 1}), n.pooled, c.pooled);
+  out.memory = torch::where(d.view({B, 1, 1}), n.memory, c.memory);
+  out.memory_valid = torch::where(d.view({B, 1}), n.memory_valid, c.memory_valid.to(torch::kBool));
+  return out;
+}
+
+TextContext cat_contexts(const TextContext& a, const TextContext& b) {
+  return {torch::cat({a.pooled, b.pooled}), torch::cat({a.memory, b.memory}),
+          torch::cat({a.memory_valid, b.memory_valid})};
+}
+
+std::string train_on_demand(const std::string& config, const std::vector<std::string>& overrides) {
+  // A run that trains reseeds torch and sets its thread count, one that is already done
+  // does not: restoring both keeps the caller's random stream independent of which.
+  auto gen = at::detail::getDefaultCPUGenerator();
+  torch::Tensor state;
+  {
+    std::lock_guard<std::mutex> lock(gen.mutex());
+    state = gen.get_state();
+  }
+  const int threads = torch::get_num_threads();
+  auto dir = run_train(config, overrides).run_dir.string();
+  {
+    std::lock_guard<std::mutex> lock(gen.mutex());
+    gen.set_state(state);
+  }
+  torch::set_num_threads(threads);
+  return dir;
+}
+
+std::string resolve_tokenizer_run(const TokenPriorConfig& c) {
+  if (!c.tokenizer_run.empty()) return c.tokenizer_run;
+  return train_on_demand(c.tokenizer_config, c.tokenizer_overrides);
+}
+
+// ---------------------------------------------------------------- trainer
+
+namespace {
+
+const char* kMetaFile = "prior_meta.yaml";
+
+class TokenPriorTrainer : public Trainable {
+ public:
+  TokenPriorTrainer(const TokenPriorConfig& c, const TrainContext& ctx) : ctx_(ctx) {
+    if (auto* t = dynamic_cast<const TmdPriorConfig*>(&c)) {
+      auto own = std::make_shared<TmdPriorConfig>(*t);
+      tmd_ = own.get();
+      own_ = own;
+    } else {
+      own_ = std::make_shared<MaskedPriorConfig>(dynamic_cast<const MaskedPriorConfig&>(c));
+    }
+    const MotionSet& set = ctx.data->set();
+    tokenizer_run_ = resolve_tokenizer_run(c);
+    auto tok = load_vq_tokenizer(tokenizer_run_, ctx.device);
+    tok.check_compatible(set, ctx.data->source());
+    K_ = tok.model->codebook_size();
+    stride_ = tok.model->stride();
+    vocab_ = set.vocab.empty() ? TextVocab::build(set) : TextVocab(set.vocab, ctx.data->source());
+    net_ = TokenPriorNet(vocab_.size(), K_, c);
+    {
+      torch::NoGradGuard ng;
+      net_->distance.copy_(tok.model->token_distance_table());
+    }
+    tokenize_dataset(*tok.model);
+  }
+  nn::Module& module() override { return *net_; }
+
+  LossOutput loss(const std::vector<int64_t>& idx) override {
+    const MotionSet& set = ctx_.data->set();
+    std::vector<std::string> caps;
+    for (int64_t i : idx) {
+      const auto& c = set.captions[i];
+      caps.push_back(c[torch::randint(0, static_cast<int64_t>(c.size()), {1}).item<int64_t>()]);
+    }
+    const int64_t B = idx.size();
+    auto t = torch::rand({B});
+    auto drop = torch::rand({B}) < cfg().cond_drop;
+    torch::Tensor noise;  // masked prior: the random ranks choosing masked positions
+    if (!tmd_) noise = torch::rand({B, tokens_.size(1)});
+    auto r = token_loss(idx, caps, t, drop, noise, nullptr);
+    LossOutput out;
+    out.loss = r.ce;
+    out.parts = {{"ce", r.ce.detach()}, {"acc", r.acc}};
+    return out;
+  }
+
+  // Validation CE at fixed times (first caption, corruption from a constant-seeded
+  // local generator): comparable across runs and leaves torch's RNG alone.
+  std::map<std::string, double> evaluate() override {
+    torch::NoGradGuard ng;
+    net_->eval();
+    auto idx = ctx_.data->split("val");
+    const MotionSet& set = ctx_.data->set();
+    auto gen = at::make_generator<at::CPUGeneratorImpl>(20240611);
+    std::map<std::string, double> out;
+    double total = 0, total_acc = 0;
+    for (double tv : cfg().eval_t) {
+      double sum = 0, acc = 0, weight = 0;
+      for (size_t s = 0; s < idx.size(); s += 32) {
+        std::vector<int64_t> chunk(idx.begin() + s, idx.begin() + std::min(idx.size(), s + 32));
+        std::vector<std::string> caps;
+        for (int64_t i : chunk) caps.push_back(set.captions[i][0]);
+        const int64_t B = chunk.size();
+        auto t = torch::full({B}, tv);
+        auto drop = torch::zeros({B}, torch::kBool);
+        torch::Tensor noise;
+        if (!tmd_) noise = torch::rand({B, tokens_.size(1)}, gen, torch::TensorOptions());
+        auto r = token_loss(chunk, caps, t, drop, noise, &gen);
+        double w = r.count;
+        sum += r.ce.item<double>() * w;
+        acc += r.acc.item<double>() * w;
+        weight += w;
+      }
+      double l = sum / std::max(1.0, weight), a = acc / std::max(1.0, weight);
+      out[fmt::format("val_ce_t{:.2f}", tv)] = l;
+      total += l;
+      total_acc += a;
+    }
+    out["val_ce"] = total / cfg().eval_t.size();
+    out["val_acc"] = total_acc / cfg().eval_t.size();
+    return out;
+  }
+
+  void save_artifacts(const fs::path& outputs) override {
+    std::string words;
+    for (auto& w : vocab_.words()) words += w + "\n";
+    write_file_atomic(outputs / "vocab.txt", words);
+    const MotionSet& set = ctx_.data->set();
+    YAML::Emitter e;
+    e << YAML::BeginMap << YAML::Key << "fps" << YAML::Value << set.fps << YAML::Key << "t_max" << YAML::Value
+      << set.t_max << YAML::Key << "num_joints" << YAML::Value << set.num_joints() << YAML::Key << "data"
+      << YAML::Value << ctx_.data->source() << YAML::Key << "tokenizer_run" << YAML::Value << tokenizer_run_
+      << YAML::Key << "codebook_size" << YAML::Value << K_ << YAML::Key << "stride" << YAML::Value << stride_
+      << YAML::Key << "skeleton" << YAML::Value << YAML::Literal << skeleton_to_yaml(set.skeleton) << YAML::EndMap;
+    write_file_atomic(outputs / kMetaFile, std::string(e.c_str()) + "\n");
+  }
+
+ private:
+  struct TokenLoss {
+    torch::Tensor ce, acc;  // scalars
+    double count = 0;       // tokens the CE averages over
+  };
+
+  // Every clip of the data set through the tokenizer once, in the tokenizer's own
+  // normalisation, whole clips padded to a multiple of its stride (padding zeroed).
+  void tokenize_dataset(VqTokenizerImpl& tok) {
+    torch::NoGradGuard ng;
+    const MotionSet& set = ctx_.data->set();
+    const int64_t N = set.size(), J = set.num_joints(), Tm = set.t_max;
+    const int64_t L = (Tm + stride_ - 1) / stride_, Tp = L * stride_;
+    tokens_ = torch::zeros({N, L}, torch::kInt64);
+    token_lengths_ = torch::zeros({N}, torch::kInt64);
+    auto all = torch::from_blob(const_cast<float*>(set.joints.data()), {static_cast<int64_t>(N), Tm, J, 3},
+                                torch::kFloat32);
+    for (int64_t s = 0; s < N; s += 64) {
+      const int64_t n = std::min<int64_t>(64, N - s);
+      auto world = torch::zeros({n, Tp, J, 3});
+      world.narrow(1, 0, Tm).copy_(all.narrow(0, s, n));
+      auto mask = torch::zeros({n, Tp}, torch::kBool);
+      for (int64_t b = 0; b < n; ++b) {
+        mask[b].narrow(0, 0, set.lengths[s + b]).fill_(true);
+        token_lengths_[s + b] = (set.lengths[s + b] + stride_ - 1) / stride_;
+      }
+      auto x = tok.normalize(world.to(ctx_.device)).flatten(2);
+      tokens_.narrow(0, s, n).copy_(tok.encode(x, mask.to(ctx_.device)).to(torch::kCPU));
+    }
+  }
+
+  // eq. (20) averaged over the tokens it covers: all valid tokens (TMD) or the masked
+  // ones (masked baseline). gen = nullptr draws TMD corruptions from torch's generator.
+  TokenLoss token_loss(const std::vector<int64_t>& idx, const std::vector<std::string>& caps, const torch::Tensor& t,
+                       const torch::Tensor& drop, const torch::Tensor& noise, at::Generator* gen) {
+    const auto dev = ctx_.device;
+    const int64_t B = idx.size(), L = tokens_.size(1);
+    auto ix = torch::tensor(idx, torch::kInt64);
+    auto x1 = tokens_.index_select(0, ix).to(dev);
+    auto n = token_lengths_.index_select(0, ix);
+    auto valid = (torch::arange(L).unsqueeze(0) < n.unsqueeze(1)).to(dev);
+    torch::Tensor xin, target_mask, tt;
+    if (tmd_) {
+      // eq. (19): z_t,n ~ q_t(. | z_1,n) per token, t ~ U[0, 1 - eps).
+      tt = (t * (1 - tmd_->t_eps)).to(dev);
+      auto probs = tmd_path_probs(net_->distance, x1, tmd_beta(tt, tmd_->beta_c, tmd_->beta_a).view({B, 1}));
+      auto flat = probs.reshape({B * L, K_}).to(torch::kCPU);
+      auto draw = gen ? torch::multinomial(flat, 1, false, *gen) : torch::multinomial(flat, 1);
+      xin = draw.view({B, L}).to(dev);
+      target_mask = valid;
+    } else {
+      // MoMask: mask round(n cos(pi t / 2)) >= 1 random valid tokens.
+      auto counts = torch::zeros({B}, torch::kInt64);
+      auto ta = t.accessor<float, 1>();
+      for (int64_t b = 0; b < B; ++b) counts[b] = masked_train_count(n[b].item<int64_t>(), ta[b]);
+      auto scores = noise.masked_fill(valid.to(torch::kCPU).logical_not(), 2.0);
+      auto ranks = scores.argsort(int64_t{1}).argsort(int64_t{1});  // continuous noise: ties have probability 0
+      target_mask = (ranks < counts.unsqueeze(1)).to(dev);
+      xin = torch::where(target_mask, torch::full_like(x1, net_->transformer->mask_id()), x1);
+    }
+    auto enc = encode_captions(vocab_, caps, cfg().max_words);
+    auto text = net_->encode_text(enc.ids.to(dev), enc.lengths.to(dev));
+    text = net_->drop_condition(text, drop.to(dev));
+    auto logits = net_->transformer->forward(xin, tt, text, valid).logits;  // [B, L, K]
+    auto sel = target_mask.reshape({-1});
+    auto lg = logits.reshape({B * L, K_}).index({sel});
+    auto tg = x1.reshape({-1}).index({sel});
+    TokenLoss r;
+    r.ce = F::cross_entropy(lg, tg);
+    r.acc = (lg.argmax(-1) == tg).to(torch::kFloat32).mean().detach();
+    r.count = static_cast<double>(tg.size(0));
+    return r;
+  }
+
+  std::shared_ptr<TokenPriorConfig> own_;  // a copy of the model config (its dynamic type)
+  const TokenPriorConfig& cfg() const { return *own_; }
+  const TmdPriorConfig* tmd_ = nullptr;
+  TrainContext ctx_;
+  TextVocab vocab_{TextVocab::special_tokens()};
+  TokenPriorNet net_{nullptr};
+  std::string tokenizer_run_;
+  int64_t K_ = 0, stride_ = 4;
+  torch::Tensor tokens_;         // [N, L] int64 CPU: every clip's codes
+  torch::Tensor token_lengths_;  // [N] valid tokens = ceil(length / stride)
+};
+
+std::unique_ptr<Trainable> make_token_trainer(const Config& c, const TrainContext& ctx) {
+  return std::make_unique<TokenPriorTrainer>(dynamic_cast<const TokenPriorConfig&>(c), ctx);
+}
+
+}  // namespace
+
+MC_REGISTER_MODEL("tmd_prior", TmdPriorConfig, make_token_trainer,
+                  "AnchorRoute's TMD prior: metric discrete flow over VQ tokens, dual-context text (eqs. (17)-(20))");
+MC_REGISTER_MODEL("masked_prior", MaskedPriorConfig, make_token_trainer,
+                  "MoMask-style masked token prior (cosine masking) on the TMD backbone and tokenizer");
+
+}  // namespace mc

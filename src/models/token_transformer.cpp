@@ -1,0 +1,207 @@
+// The token transformer of the tokenised priors: AdaLN-Zero blocks with RoPE
+// self-attention (plus AnchorKV's extra memory), text cross-attention and SwiGLU.
+#include "models/token_transformer.h"
+
+#include <cmath>
+#include <limits>
+
+#include <fmt/format.h>
+#include <fmt/ranges.h>
+
+#include "core/error.h"
+
+namespace mc {
+namespace nn = torch::nn;
+
+int64_t TokenTransformerOptions::resolved_mlp_hidden() const {
+  if (mlp_hidden > 0) return mlp_hidden;
+  int64_t h = (8 * width + 2) / 3;
+  return (h + 63) / 64 * 64;
+}
+
+namespace {
+
+constexpr float kNegInf = -std::numeric_limits<float>::infinity();
+
+std::string shape_of(const torch::Tensor& t) {
+  if (!t.defined()) return "undefined";
+  return fmt::format("[{}]", fmt::join(t.sizes().vec(), ", "));
+}
+
+torch::Tensor modulate(const torch::Tensor& x, const torch::Tensor& shift, const torch::Tensor& scale) {
+  return x * (1 + scale.unsqueeze(1)) + shift.unsqueeze(1);
+}
+
+// [B, N, H*Dh] -> [B, H, N, Dh]
+torch::Tensor split_heads(const torch::Tensor& x, int64_t heads, int64_t head_dim) {
+  return x.view({x.size(0), x.size(1), heads, head_dim}).transpose(1, 2);
+}
+
+// softmax(q k^T / sqrt(Dh)) v over keys where key_valid [B, N] is true; -> [B, Lq, H*Dh].
+torch::Tensor attend(const torch::Tensor& q, const torch::Tensor& k, const torch::Tensor& v,
+                     const torch::Tensor& key_valid, nn::Dropout& drop) {
+  const int64_t B = q.size(0), H = q.size(1), Lq = q.size(2), Dh = q.size(3), N = k.size(2);
+  auto s = torch::matmul(q, k.transpose(-2, -1)) / std::sqrt(static_cast<double>(Dh));  // [B, H, Lq, N]
+  s = s.masked_fill(key_valid.logical_not().view({B, 1, 1, N}), kNegInf);
+  auto a = drop(torch::softmax(s, -1));
+  return torch::matmul(a, v).transpose(1, 2).reshape({B, Lq, H * Dh});
+}
+
+}  // namespace
+
+// ---------------------------------------------------------------- attention
+
+TokenSelfAttentionImpl::TokenSelfAttentionImpl(const TokenTransformerOptions& o)
+    : heads(o.heads), head_dim(o.head_dim()), rope_base(o.rope_base) {
+  qkv = register_module("qkv", nn::Linear(o.width, 3 * o.width));
+  proj = register_module("proj", nn::Linear(o.width, o.width));
+  q_norm = register_module("q_norm", RMSNorm(head_dim));
+  k_norm = register_module("k_norm", RMSNorm(head_dim));
+  attn_drop = register_module("attn_drop", nn::Dropout(o.dropout));
+}
+
+torch::Tensor TokenSelfAttentionImpl::forward(const torch::Tensor& x, const torch::Tensor& key_valid,
+                                              const torch::Tensor& positions, const LayerKV* extra) {
+  const int64_t B = x.size(0), L = x.size(1);
+  auto qkv_ = qkv(x).view({B, L, 3, heads, head_dim}).permute({2, 0, 3, 1, 4});  // [3, B, H, L, Dh]
+  auto q = apply_rope(q_norm(qkv_[0]), positions, rope_base);
+  auto k = apply_rope(k_norm(qkv_[1]), positions, rope_base);
+  auto v = qkv_[2];
+  auto kv_valid = key_valid;
+  if (extra && extra->defined()) {
+    // eq. (15): softmax(Q [K; K^s]^T / sqrt(d)) [V; V^s], the memory after the block's own keys.
+    const auto& ek = extra->k;
+    const auto& ev = extra->v;
+    if (ek.dim() != 3 || ek.size(0) != B || ek.size(2) != heads * head_dim || !ev.defined() ||
+        ev.sizes() != ek.sizes())
+      fail("extra key/value memory must be two [B={}, M, {}] tensors, got k {} and v {}", B, heads * head_dim,
+           shape_of(ek), shape_of(ev));
+    const int64_t M = ek.size(1);
+    auto em = extra->mask.defined() ? extra->mask.to(x.device(), torch::kBool)
+                                    : torch::ones({B, M}, torch::TensorOptions().dtype(torch::kBool).device(x.device()));
+    if (em.sizes() != torch::IntArrayRef({B, M}))
+      fail("extra key/value mask must be [B={}, M={}], got {}", B, M, shape_of(em));
+    k = torch::cat({k, split_heads(ek.to(k.dtype()), heads, head_dim)}, 2);
+    v = torch::cat({v, split_heads(ev.to(v.dtype()), heads, head_dim)}, 2);
+    kv_valid = torch::cat({key_valid, em}, 1);
+  }
+  return proj(attend(q, k, v, kv_valid, attn_drop));
+}
+
+TextCrossAttentionImpl::TextCrossAttentionImpl(const TokenTransformerOptions& o)
+    : heads(o.heads), head_dim(o.head_dim()) {
+  q = register_module("q", nn::Linear(o.width, o.width));
+  kv = register_module("kv", nn::Linear(o.text_dim, 2 * o.width));
+  proj = register_module("proj", nn::Linear(o.width, o.width));
+  q_norm = register_module("q_norm", RMSNorm(head_dim));
+  k_norm = register_module("k_norm", RMSNorm(head_dim));
+  attn_drop = register_module("attn_drop", nn::Dropout(o.dropout));
+}
+
+torch::Tensor TextCrossAttentionImpl::forward(const torch::Tensor& x, const torch::Tensor& memory,
+                                              const torch::Tensor& memory_valid) {
+  auto qh = q_norm(split_heads(q(x), heads, head_dim));
+  auto kvh = kv(memory).chunk(2, -1);
+  auto kh = k_norm(split_heads(kvh[0].contiguous(), heads, head_dim));
+  auto vh = split_heads(kvh[1].contiguous(), heads, head_dim);
+  return proj(attend(qh, kh, vh, memory_valid.to(torch::kBool), attn_drop));
+}
+
+// ---------------------------------------------------------------- block
+
+TokenBlockImpl::TokenBlockImpl(const TokenTransformerOptions& o) {
+  norm1 = register_module("norm1", RMSNorm(o.width, false));
+  norm2 = register_module("norm2", RMSNorm(o.width, false));
+  norm3 = register_module("norm3", RMSNorm(o.width, false));
+  attn = register_module("attn", TokenSelfAttention(o));
+  cross = register_module("cross", TextCrossAttention(o));
+  mlp = register_module("mlp", SwiGLU(o.width, o.resolved_mlp_hidden(), o.dropout));
+  ada = register_module("ada", nn::Linear(o.width, 9 * o.width));
+}
+
+torch::Tensor TokenBlockImpl::forward(const torch::Tensor& x, const torch::Tensor& c, const TextContext& text,
+                                      const torch::Tensor& key_valid, const torch::Tensor& positions,
+                                      const LayerKV* extra) {
+  auto m = ada(torch::silu(c)).chunk(9, -1);  // (shift, scale, gate) for self-attn, cross-attn, MLP
+  auto h = x + m[2].unsqueeze(1) * attn(modulate(norm1(x), m[0], m[1]), key_valid, positions, extra);
+  h = h + m[5].unsqueeze(1) * cross(modulate(norm2(h), m[3], m[4]), text.memory, text.memory_valid);
+  return h + m[8].unsqueeze(1) * mlp(modulate(norm3(h), m[6], m[7]));
+}
+
+// ---------------------------------------------------------------- transformer
+
+TokenTransformerImpl::TokenTransformerImpl(const TokenTransformerOptions& o) : opt(o) {
+  if (o.width % o.heads != 0 || (o.width / o.heads) % 2 != 0)
+    fail("token transformer: width {} must be heads ({}) times an even head size (RoPE)", o.width, o.heads);
+  const int64_t d = o.width;
+  embed = register_module("embed", nn::Embedding(o.num_codes + o.num_special, d));
+  if (o.use_time)
+    t_mlp = register_module("t_mlp", nn::Sequential(nn::Linear(o.freq_dim, d), nn::SiLU(), nn::Linear(d, d)));
+  cond_proj = register_module("cond_proj", nn::Linear(o.text_dim, d));
+  blocks = register_module("blocks", nn::ModuleList());
+  for (int64_t i = 0; i < o.depth; ++i) blocks->push_back(TokenBlock(o));
+  final_norm = register_module("final_norm", RMSNorm(d, false));
+  final_ada = register_module("final_ada", nn::Linear(d, 2 * d));
+  head = register_module("head", nn::Linear(d, o.num_codes));
+
+  // DiT initialisation as the flow transformer: xavier linears, zero biases, zero
+  // AdaLN modulations and head, so an untrained prior predicts the uniform distribution.
+  torch::NoGradGuard ng;
+  for (auto& m : modules(false))
+    if (auto* lin = m->as<nn::Linear>()) {
+      nn::init::xavier_uniform_(lin->weight);
+      nn::init::zeros_(lin->bias);
+    }
+  nn::init::normal_(embed->weight, 0.0, 0.02);
+  if (o.use_time)
+    for (auto& m : t_mlp->modules(false))
+      if (auto* lin = m->as<nn::Linear>()) nn::init::normal_(lin->weight, 0.0, 0.02);
+  for (auto& b : *blocks) {
+    auto* blk = b->as<TokenBlockImpl>();
+    nn::init::zeros_(blk->ada->weight);
+    nn::init::zeros_(blk->ada->bias);
+  }
+  for (auto* lin : {final_ada.get(), head.get()}) {
+    nn::init::zeros_(lin->weight);
+    nn::init::zeros_(lin->bias);
+  }
+}
+
+torch::Tensor TokenTransformerImpl::conditioning(const torch::Tensor& t, const torch::Tensor& pooled) {
+  auto c = cond_proj(pooled);
+  if (opt.use_time) c = c + t_mlp->forward(timestep_sinusoid(t.to(pooled.device()) * opt.time_scale, opt.freq_dim));
+  return c;
+}
+
+TokenTransformerOutput TokenTransformerImpl::forward(const torch::Tensor& ids, const torch::Tensor& t,
+                                                     const TextContext& text, const torch::Tensor& valid,
+                                                     const TokenTransformerHooks* hooks) {
+  const int64_t B = ids.size(0), L = ids.size(1);
+  const auto dev = ids.device();
+  if (opt.use_time && !t.defined()) fail("token transformer: this network needs a time t per sample");
+  const size_t depth = static_cast<size_t>(opt.depth);
+  if (hooks && !hooks->extra_kv.empty() && hooks->extra_kv.size() != depth)
+    fail("token transformer: {} extra key/value entries for {} blocks; give one per block (or none)",
+         hooks->extra_kv.size(), depth);
+  if (hooks && !hooks->block_residuals.empty() && hooks->block_residuals.size() != depth)
+    fail("token transformer: {} block residuals for {} blocks; give one per block (or none)",
+         hooks->block_residuals.size(), depth);
+  auto pos = torch::arange(L, torch::TensorOptions().dtype(torch::kFloat32).device(dev));
+  auto c = conditioning(opt.use_time ? t.to(dev, torch::kFloat32).reshape({-1}).expand({B}) : torch::Tensor(),
+                        text.pooled);
+  auto key_valid = valid.to(dev, torch::kBool);
+  TokenTransformerOutput out;
+  auto h = embed(ids);
+  for (size_t l = 0; l < depth; ++l) {
+    const LayerKV* extra = hooks && !hooks->extra_kv.empty() ? &hooks->extra_kv[l] : nullptr;
+    h = blocks[l]->as<TokenBlockImpl>()->forward(h, c, text, key_valid, pos, extra);
+    if (hooks && !hooks->block_residuals.empty() && hooks->block_residuals[l].defined())
+      h = h + hooks->block_residuals[l];
+    if (hooks && hooks->collect_hidden) out.hidden.push_back(h);
+  }
+  auto m = final_ada(torch::silu(c)).chunk(2, -1);
+  out.logits = head(modulate(final_norm(h), m[0], m[1]));
+  return out;
+}
+
+}  // namespace mc

@@ -1,0 +1,132 @@
+// A trained token prior (TMD or masked) loaded from its run directory with its
+// tokenizer, CFG on logits, the TMD transition sampler (eqs. (21)-(23)) and the
+// MoMask-style confidence re-masking sampler; both decode to world joints.
+#pragma once
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "core/config.h"
+#include "data/skeleton.h"
+#include "data/text_vocab.h"
+#include "models/token_prior.h"
+#include "models/vq_tokenizer.h"
+
+namespace mc {
+
+struct TmdSamplerConfig : Config {
+  int steps = 50;            // transition steps over t_k = k / steps (reference-facts §6: 32-50)
+  double cfg_scale = 4.0;    // logits l_u + s (l_c - l_u)
+  std::string proposal = "sample";  // x1_hat per step: sample from softmax(logits / temperature), or argmax
+  double temperature = 1.0;
+  std::string last_step = "argmax";  // the last step's x1_hat: argmax or sample
+  double t_eps = 1e-3;       // rates are evaluated at t clamped to [t_eps, 1 - t_eps]
+  int batch_size = 32;
+  void visit(FieldVisitor& v) override {
+    v("steps", steps, "transition steps; times t_k = k / steps, step size h = 1 / steps", in_range(1, 10000));
+    v("cfg_scale", cfg_scale, "classifier-free guidance on logits (1 = conditional only, 0 = unconditional)",
+      in_range(0.0, 100.0));
+    v("proposal", proposal, "clean-token proposal x1_hat at each step", one_of({"sample", "argmax"}));
+    v("temperature", temperature, "softmax temperature of sampled proposals", positive<double>());
+    v("last_step", last_step, "the final tokens are the last proposal: its argmax or a sample",
+      one_of({"argmax", "sample"}));
+    v("t_eps", t_eps, "clamp of t in beta'(t) (infinite at t = 0 for a < 1 and at t = 1)", in_range(1e-8, 0.5));
+    v("batch_size", batch_size, "motions per network call (the CFG forward doubles it)", at_least(1));
+  }
+};
+
+struct MaskedSamplerConfig : Config {
+  int steps = 10;            // re-masking iterations (MoMask: ~10)
+  double cfg_scale = 4.0;
+  double temperature = 1.0;
+  double topk_keep = 0.1;    // keep the top ceil(topk_keep * K) logits before sampling (MoMask 0.9 filter)
+  int batch_size = 32;
+  void visit(FieldVisitor& v) override {
+    v("steps", steps, "iterations; step k re-masks round(n cos(pi/2 k/(steps-1))) >= 1 tokens", in_range(1, 1000));
+    v("cfg_scale", cfg_scale, "classifier-free guidance on logits", in_range(0.0, 100.0));
+    v("temperature", temperature, "sampling temperature", positive<double>());
+    v("topk_keep", topk_keep, "fraction of the codebook kept by the top-k logit filter (1 = no filter)",
+      in_range(1e-6, 1.0));
+    v("batch_size", batch_size, "motions per network call (the CFG forward doubles it)", at_least(1));
+  }
+};
+
+// A finished `tmd_prior` or `masked_prior` run (config.yaml, checkpoints/final.pt,
+// outputs/vocab.txt, outputs/prior_meta.yaml) and the tokenizer run it names.
+class TokenPrior {
+ public:
+  // UserError naming a missing file, a wrong model type, an unreadable checkpoint or a
+  // tokenizer whose codebook no longer matches the one the prior was trained with.
+  static TokenPrior load(const std::string& run_dir, torch::Device device = torch::kCPU);
+
+  TextContext encode_texts(const std::vector<std::string>& captions) const;
+  TextContext null_texts(int64_t B, int64_t W) const;
+
+  // One network call: ids [B, L], t [B] or scalar (ignored by the masked prior), valid [B, L].
+  torch::Tensor raw_logits(const torch::Tensor& ids, const torch::Tensor& t, const TextContext& text,
+                           const torch::Tensor& valid, const TokenTransformerHooks* hooks = nullptr) const;
+  // l_u + s (l_c - l_u), both halves in one doubled forward (hooks, if any, are given
+  // for B rows and duplicated). UserError when a valid position's logits are not finite.
+  torch::Tensor guided_logits(const torch::Tensor& ids, const torch::Tensor& t, const TextContext& text,
+                              const torch::Tensor& valid, double cfg_scale,
+                              const TokenTransformerHooks* hooks = nullptr) const;
+  // Tokens [L] of one motion -> world joints [L * stride, J, 3] (CPU).
+  torch::Tensor decode_world(const torch::Tensor& ids) const;
+
+  bool is_tmd() const { return cfg_->is_tmd(); }
+  const TokenPriorConfig& config() const { return *cfg_; }
+  const TmdPriorConfig& tmd_config() const;  // logic_error for a masked prior
+  const LoadedVqTokenizer& tokenizer() const { return tok_; }
+  torch::Tensor distance() const { return (*net_)->distance; }  // [K, K]
+  int64_t codebook_size() const { return tok_.model->codebook_size(); }
+  int64_t stride() const { return tok_.model->stride(); }
+  int64_t max_tokens() const { return (t_max_ + stride() - 1) / stride(); }
+  const Skeleton& skeleton() const { return tok_.skeleton; }
+  const TextVocab& vocab() const { return *vocab_; }
+  double fps() const { return tok_.fps; }
+  int t_max() const { return t_max_; }
+  int num_joints() const { return skeleton().num_joints(); }
+  const std::string& run_dir() const { return run_dir_; }
+  torch::Device device() const { return device_; }
+  TokenPriorNet& net() const { return *net_; }
+
+ private:
+  std::shared_ptr<TokenPriorNet> net_;
+  std::shared_ptr<TextVocab> vocab_;
+  std::shared_ptr<TokenPriorConfig> cfg_;
+  LoadedVqTokenizer tok_;
+  int t_max_ = 196;
+  std::string run_dir_;
+  torch::Device device_ = torch::kCPU;
+};
+
+// ---------------------------------------------------------------- TMD transitions
+
+// eq. (21): u_t(i | x_t, x1_hat) = q_t(i | x1_hat) beta'(t) [d(x_t, x1_hat) - d(i, x1_hat)]_+,
+// with u(x_t) = 0. xt, x1_hat [...] int64; t in (0, 1). -> [..., K].
+torch::Tensor tmd_transition_rates(const torch::Tensor& dist, const torch::Tensor& xt, const torch::Tensor& x1_hat,
+                                   double t, double c, double a);
+// eqs. (22)-(23): jump with probability 1 - exp(-h sum_i u(i)), to i ~ u / sum u. The
+// randomness is given: u_jump, u_pick [...] uniforms in [0, 1).
+torch::Tensor tmd_jump(const torch::Tensor& xt, const torch::Tensor& rates, double h, const torch::Tensor& u_jump,
+                       const torch::Tensor& u_pick);
+// i ~ probs [..., K] (rows summing to 1, or any non-negative weights) by inverse CDF at u [...].
+torch::Tensor categorical_from_uniform(const torch::Tensor& probs, const torch::Tensor& u);
+
+// ---------------------------------------------------------------- sampling
+
+struct TokenSampleResult {
+  torch::Tensor world;                 // [N, T, J, 3] world metres (CPU), zero past each length; T = max length
+  std::vector<int> lengths;            // [N] frames as requested
+  std::vector<torch::Tensor> tokens;   // [N] final codes, ceil(length / stride) each (CPU int64)
+};
+
+// One motion per caption of `lengths[i]` frames (1..t_max): ceil(length / stride) tokens
+// are generated, decoded and trimmed. Each sample draws from its own generator seeded
+// by (seed, index), so a sample depends on neither batch_size nor the other samples.
+TokenSampleResult sample_tmd(const TokenPrior& prior, const std::vector<std::string>& captions,
+                             const std::vector<int>& lengths, const TmdSamplerConfig& cfg, uint64_t seed);
+TokenSampleResult sample_masked(const TokenPrior& prior, const std::vector<std::string>& captions,
+                                const std::vector<int>& lengths, const MaskedSamplerConfig& cfg, uint64_t seed);
+
+}  // namespace mc
