@@ -12,6 +12,7 @@
 #include "models/anchor_adapters.h"
 #include "samplers/anchor_loss.h"
 #include "samplers/motion_generator.h"
+#include "samplers/tmd_sampler.h"
 #include "test_util.h"
 #include "train/motion_dataset.h"
 #include "train/train_job.h"
@@ -21,12 +22,11 @@ using namespace mc::test;
 
 namespace {
 
-std::vector<ControlTask> protocol_tasks(const std::string& yaml, const MotionSet& set, const std::vector<size_t>& clips,
-                                        uint64_t seed) {
-  auto node = config_from_string(yaml);
-  auto cfg = make_component_config("protocol", node["type"].as<std::string>());
-  node.remove("type");
-  parse_config(node, *cfg);
+// type: the protocol type; yaml: its other keys.
+std::vector<ControlTask> protocol_tasks(const std::string& type, const std::string& yaml, const MotionSet& set,
+                                        const std::vector<size_t>& clips, uint64_t seed) {
+  auto cfg = make_component_config("protocol", type);
+  parse_config(config_from_string(yaml), *cfg);
   return dynamic_cast<ControlProtocol&>(*cfg).make_tasks(set, clips, seed);
 }
 
@@ -52,7 +52,7 @@ TEST_CASE("anchors protocol: family x K cells, values from the clip, specs every
   auto ds = MotionDataset::load(data);
   const MotionSet& set = ds->set();
   std::vector<size_t> clips = {0, 1, 2, 3, 4, 5};
-  auto tasks = protocol_tasks("type: anchors\nfamilies: [root_3d, planar_root, body_point]\nanchor_counts: [2, 8]\n",
+  auto tasks = protocol_tasks("anchors", "families: [root_3d, planar_root, body_point]\nanchor_counts: [2, 8]\n",
                               set, clips, 7);
   REQUIRE(tasks.size() == 6);  // cycle: one combination per clip
   CHECK(tasks[0].group == "family=root_3d/K=2");
@@ -65,20 +65,20 @@ TEST_CASE("anchors protocol: family x K cells, values from the clip, specs every
     // Anchors hold the clip's own values: zero error on the ground truth.
     for (double e : anchor_errors(a, t.source.data(), set.num_joints())) CHECK(e < 1e-5);
   }
-  auto again = protocol_tasks("type: anchors\nfamilies: [root_3d, planar_root, body_point]\nanchor_counts: [2, 8]\n",
+  auto again = protocol_tasks("anchors", "families: [root_3d, planar_root, body_point]\nanchor_counts: [2, 8]\n",
                               set, clips, 7);
   for (size_t i = 0; i < tasks.size(); ++i)
     CHECK(anchors_from_spec(tasks[i].spec, tasks[i].length, set.skeleton, tasks[i].source.data()) ==
           anchors_from_spec(again[i].spec, again[i].length, set.skeleton, again[i].source.data()));
-  auto all = protocol_tasks("type: anchors\nfamilies: [planar_root]\nanchor_counts: [2, 4, 8]\nassignment: all\n", set,
+  auto all = protocol_tasks("anchors", "families: [planar_root]\nanchor_counts: [2, 4, 8]\nassignment: all\n", set,
                             {0, 1}, 7);
   CHECK(all.size() == 6);
-  auto sk = protocol_tasks("type: sparse_keyjoint\nratio: 0.3\n", set, {0, 1}, 3);
+  auto sk = protocol_tasks("sparse_keyjoint", "ratio: 0.3\n", set, {0, 1}, 3);
   REQUIRE(sk.size() == 2);
   auto a = anchors_from_spec(sk[0].spec, sk[0].length, set.skeleton, sk[0].source.data());
   CHECK(a.joints() == std::vector<int>{0, 10, 11, 15, 20, 21});
   CHECK(static_cast<int>(a.times().size()) == std::max(1, static_cast<int>(std::lround(0.3 * sk[0].length))));
-  CHECK_THROWS_AS(protocol_tasks("type: anchors\nanchor_counts: [500]\n", set, {0}, 1), UserError);
+  CHECK_THROWS_AS(protocol_tasks("anchors", "anchor_counts: [500]\n", set, {0}, 1), UserError);
 }
 
 TEST_CASE("AnchorRoute end to end: AnchorKV beats the frozen TMD on control error, RouteSolver falls with steps",
@@ -121,7 +121,7 @@ TEST_CASE("AnchorRoute end to end: AnchorKV beats the frozen TMD on control erro
     if (clips.size() == 8) break;
     clips.push_back(static_cast<size_t>(i));
   }
-  auto tasks = protocol_tasks("type: anchors\nfamilies: [root_3d]\nanchor_counts: [4, 8]\n", set, clips, 11);
+  auto tasks = protocol_tasks("anchors", "families: [root_3d]\nanchor_counts: [4, 8]\n", set, clips, 11);
   const std::string sampler = "sampler:\n  steps: 8\n  batch_size: 8\n";
   auto frozen = make_generator(fmt::format("prior_run: {}\n{}route:\n  steps: 0\n", tmd.run_dir.string(), sampler));
   auto g_frozen = frozen->generate(tasks, 3);
