@@ -146,7 +146,7 @@ int64_t count_parameters(nn::Module& m) {
 ScaffoldEncoderImpl::ScaffoldEncoderImpl(int64_t feature_width, int64_t d, int64_t stride, int64_t blocks,
                                          bool dual, int64_t text_dim, int64_t heads_)
     : dual_context(dual), heads(heads_) {
-  in = register_module("in", nn::Linear(feature_width, d));
+  in = register_module("input_proj", nn::Linear(feature_width, d));  // not "in": a TorchScript keyword in archives
   down = register_module("down", nn::ModuleList());
   for (int64_t k = 0, n = log2_stride(stride); k < n; ++k)  // the tokenizer's x2 stages
     down->push_back(nn::Conv1d(nn::Conv1dOptions(d, d, 4).stride(2).padding(1)));
