@@ -103,7 +103,7 @@ TEST_CASE("AnchorRoute end to end: AnchorKV beats the frozen TMD on control erro
                            "model.text_width=32", "model.text_ff=64", "model.eval_t=[0.5]",
                            "model.tokenizer_run=" + tok.run_dir.string()}));
   auto adapter = run_train("configs/adapter/anchorkv_tiny.yaml",
-                           ov({"optim.steps=150", "optim.warmup=10", "optim.batch_size=16", "model.rank=8",
+                           ov({"optim.steps=400", "optim.warmup=20", "optim.batch_size=16", "optim.lr=2e-3", "model.rank=8",
                                "model.families=[root_3d]", "model.anchor_counts=[4, 8]",
                                "model.tmd_run=" + tmd.run_dir.string()}));
   REQUIRE(fs::exists(adapter.run_dir / "outputs" / "adapter_meta.yaml"));
