@@ -1,6 +1,6 @@
-// `protocol:` types of the AnchorRoute benchmarks: `anchors` (family x K sparse anchor
-// sets, Tables III-VII) and `sparse_keyjoint` (Table II's six-point setting). Anchor
-// values come from the clip; tasks carry them as ConstraintSpecs so every method reads them.
+// `protocol:` types of the AnchorRoute benchmark replay: `anchors` (families x K cycled or
+// crossed over clips, Tables III-VII) and `sparse_keyjoint` (Table II's six-point setting). The
+// route branch's anchor_route / anchor_keyjoint (anchor_protocols.cpp) are the one-family variants.
 #include <random>
 
 #include "control/anchors.h"
