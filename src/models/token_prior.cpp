@@ -181,6 +181,29 @@ TextContext cat_contexts(const TextContext& a, const TextContext& b) {
           torch::cat({a.memory_valid, b.memory_valid})};
 }
 
+TokenizedClips tokenize_clips(VqTokenizerImpl& tok, const MotionSet& set, torch::Device device) {
+  torch::NoGradGuard ng;
+  const int64_t N = set.size(), J = set.num_joints(), Tm = set.t_max, stride = tok.stride();
+  const int64_t L = (Tm + stride - 1) / stride, Tp = L * stride;
+  TokenizedClips out;
+  out.tokens = torch::zeros({N, L}, torch::kInt64);
+  out.lengths = torch::zeros({N}, torch::kInt64);
+  auto all = torch::from_blob(const_cast<float*>(set.joints.data()), {N, Tm, J, 3}, torch::kFloat32);
+  for (int64_t s = 0; s < N; s += 64) {
+    const int64_t n = std::min<int64_t>(64, N - s);
+    auto world = torch::zeros({n, Tp, J, 3});
+    world.narrow(1, 0, Tm).copy_(all.narrow(0, s, n));
+    auto mask = torch::zeros({n, Tp}, torch::kBool);
+    for (int64_t b = 0; b < n; ++b) {
+      mask[b].narrow(0, 0, set.lengths[s + b]).fill_(true);
+      out.lengths[s + b] = (set.lengths[s + b] + stride - 1) / stride;
+    }
+    auto x = tok.normalize(world.to(device)).flatten(2);
+    out.tokens.narrow(0, s, n).copy_(tok.encode(x, mask.to(device)).to(torch::kCPU));
+  }
+  return out;
+}
+
 std::string train_on_demand(const std::string& config, const std::vector<std::string>& overrides) {
   // A run that trains reseeds torch and sets its thread count, one that is already done
   // does not: restoring both keeps the caller's random stream independent of which.
@@ -233,7 +256,9 @@ class TokenPriorTrainer : public Trainable {
       torch::NoGradGuard ng;
       net_->distance.copy_(tok.model->token_distance_table());
     }
-    tokenize_dataset(*tok.model);
+    auto clips = tokenize_clips(*tok.model, set, ctx.device);
+    tokens_ = clips.tokens;
+    token_lengths_ = clips.lengths;
   }
   nn::Module& module() override { return *net_; }
 
@@ -312,31 +337,6 @@ class TokenPriorTrainer : public Trainable {
     torch::Tensor ce, acc;  // scalars
     double count = 0;       // tokens the CE averages over
   };
-
-  // Every clip of the data set through the tokenizer once, in the tokenizer's own
-  // normalisation, whole clips padded to a multiple of its stride (padding zeroed).
-  void tokenize_dataset(VqTokenizerImpl& tok) {
-    torch::NoGradGuard ng;
-    const MotionSet& set = ctx_.data->set();
-    const int64_t N = set.size(), J = set.num_joints(), Tm = set.t_max;
-    const int64_t L = (Tm + stride_ - 1) / stride_, Tp = L * stride_;
-    tokens_ = torch::zeros({N, L}, torch::kInt64);
-    token_lengths_ = torch::zeros({N}, torch::kInt64);
-    auto all = torch::from_blob(const_cast<float*>(set.joints.data()), {static_cast<int64_t>(N), Tm, J, 3},
-                                torch::kFloat32);
-    for (int64_t s = 0; s < N; s += 64) {
-      const int64_t n = std::min<int64_t>(64, N - s);
-      auto world = torch::zeros({n, Tp, J, 3});
-      world.narrow(1, 0, Tm).copy_(all.narrow(0, s, n));
-      auto mask = torch::zeros({n, Tp}, torch::kBool);
-      for (int64_t b = 0; b < n; ++b) {
-        mask[b].narrow(0, 0, set.lengths[s + b]).fill_(true);
-        token_lengths_[s + b] = (set.lengths[s + b] + stride_ - 1) / stride_;
-      }
-      auto x = tok.normalize(world.to(ctx_.device)).flatten(2);
-      tokens_.narrow(0, s, n).copy_(tok.encode(x, mask.to(ctx_.device)).to(torch::kCPU));
-    }
-  }
 
   // eq. (20) averaged over the tokens it covers: all valid tokens (TMD) or the masked
   // ones (masked baseline). gen = nullptr draws TMD corruptions from torch's generator.

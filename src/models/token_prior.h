@@ -7,7 +7,9 @@
 #include <vector>
 
 #include "core/config.h"
+#include "data/motion_set.h"
 #include "models/token_transformer.h"
+#include "models/vq_tokenizer.h"
 
 namespace mc {
 
@@ -107,6 +109,14 @@ TORCH_MODULE(TokenPriorNet);
 
 // Concatenates two contexts along the batch (widths must agree).
 TextContext cat_contexts(const TextContext& a, const TextContext& b);
+
+// Every clip of a motion set as tokens: whole clips in the tokenizer's own
+// normalisation, padded to a multiple of its stride (padding frames zeroed).
+struct TokenizedClips {
+  torch::Tensor tokens;   // [N, ceil(t_max / stride)] int64 CPU; past a clip's length: codes of padding
+  torch::Tensor lengths;  // [N] int64 valid tokens = ceil(frames / stride)
+};
+TokenizedClips tokenize_clips(VqTokenizerImpl& tokenizer, const MotionSet& set, torch::Device device);
 
 // run_train(config, overrides).run_dir, leaving torch's CPU generator state and thread
 // count as they were (a run that trains reseeds both; a finished one does not).

@@ -202,3 +202,22 @@ TEST_CASE("TokenPrior::load: clear errors for missing or foreign runs", "[tmd]")
   CHECK(user_error_of([&] { TokenPrior::load((t.path / "empty").string()); }).find("config.yaml' is missing") !=
         std::string::npos);
 }
+
+TEST_CASE("token prior configs parse, with the paper's beta and the right model types", "[tmd]") {
+  for (const char* f : {"configs/tmd/tmd_tiny.yaml", "configs/tmd/tmd_small.yaml", "configs/tmd/tmd_paper.yaml"}) {
+    auto job = load_job<TrainJobConfig>(f, {});
+    CHECK(job.model.type == "tmd_prior");
+    auto& m = job.model.as<TmdPriorConfig>();
+    CHECK(m.beta_c == 3.0);
+    CHECK(m.beta_a == 0.9);
+    CHECK(m.is_tmd());
+  }
+  for (const char* f :
+       {"configs/masked/masked_tiny.yaml", "configs/masked/masked_small.yaml", "configs/masked/masked_paper.yaml"}) {
+    auto job = load_job<TrainJobConfig>(f, {});
+    CHECK(job.model.type == "masked_prior");
+    CHECK_FALSE(job.model.as<MaskedPriorConfig>().is_tmd());
+  }
+  auto bad = user_error_of([] { load_job<TrainJobConfig>("configs/tmd/tmd_tiny.yaml", {"model.heads=3"}); });
+  CHECK(bad.find("heads") != std::string::npos);
+}
