@@ -3,11 +3,14 @@
 // RS200 > RS500), determinism, and what each Table V/VI variant changes.
 #include <catch2/catch.hpp>
 
+#include <chrono>
 #include <cmath>
 
 #include "control/anchors.h"
 #include "control/route_basis.h"
+#include "core/config.h"
 #include "core/error.h"
+#include "eval/metrics.h"
 #include "samplers/anchor_loss.h"
 #include "samplers/route_solver.h"
 
@@ -89,6 +92,11 @@ TEST_CASE("batched anchor losses match the per-set Eigen ones and are differenti
   }
   CHECK(err[0][4].item<double>() == 0.0);  // padding
   CHECK(mean_control_error(gt, batch).item<double>() < 1e-6);
+  // The AnchorRoute control error is eval's pooled control_error over the same entries.
+  std::vector<std::vector<double>> per;
+  for (int b = 0; b < 2; ++b) per.push_back(mc::anchor_errors(sets[b], wc[b].data_ptr<float>(), J));
+  CHECK(mean_control_error(world, batch).item<double>() ==
+        Approx(control_metrics_from_errors(per).control_error).epsilon(1e-5));
   // Gradient: only anchored entries receive it, planar anchors never on y.
   auto x = world.clone().set_requires_grad(true);
   anchor_loss(x, batch).sum().backward();
@@ -203,4 +211,51 @@ TEST_CASE("RouteSolver: per-sample results do not depend on the batch; bad input
   auto far = p.anchors;
   far[0].anchors[0].frame = 47;
   CHECK_THROWS_AS(solver.refine(p.ids, far, 0, {40, 48, 48}), UserError);
+}
+
+TEST_CASE("RouteSolverConfig: variants by name, bad values rejected", "[routesolver]") {
+  RouteSolverConfig c;
+  parse_config(config_from_string("steps: 500\nupdate: plain\nbasis: cubic\nactivity: shuffled\n"), c);
+  CHECK(c.steps == 500);
+  CHECK(c.update == "plain");
+  CHECK(c.basis == "cubic");
+  CHECK(c.activity == "shuffled");
+  RouteSolverConfig d;
+  CHECK_THROWS_AS(parse_config(config_from_string("basis: linear\n"), d), UserError);
+  CHECK_THROWS_AS(parse_config(config_from_string("rho_f: 0\n"), d), UserError);
+  CHECK_THROWS_AS(parse_config(config_from_string("optimiser: adam\n"), d), UserError);
+}
+
+// Timing at the MoMask tokenizer's size (width 512, D 512, K 512, 49 tokens); hidden:
+// run with `motionctl_tests "[routesolver_bench]"`.
+TEST_CASE("RouteSolver timing at full tokenizer size", "[.][routesolver_bench]") {
+  torch::manual_seed(0);
+  VqTokenizerOptions o;
+  o.conv.in_dim = 22 * 3;
+  o.conv.width = 512;
+  o.conv.latent = 512;
+  o.conv.down_stages = 2;
+  o.conv.res_depth = 3;
+  o.quant.codebook_size = 512;
+  o.quant.code_dim = 512;
+  VqTokenizer vq(o);
+  vq->eval();
+  const int B = 8, L = 49, T = 196, steps = 20;
+  auto ids = torch::randint(512, {B, L}, torch::kLong);
+  torch::Tensor target;
+  {
+    torch::NoGradGuard ng;
+    target = vq->denormalize(vq->decode(torch::randint(512, {B, L}, torch::kLong)).view({B, T, 22, 3})).contiguous();
+  }
+  std::mt19937_64 rng(1);
+  std::vector<AnchorSet> sets;
+  for (int b = 0; b < B; ++b) sets.push_back(draw_anchor_set(AnchorFamily::root_3d, 8, target[b].data_ptr<float>(), T, 22, rng));
+  RouteSolverConfig cfg;
+  cfg.steps = steps;
+  auto t0 = std::chrono::steady_clock::now();
+  auto r = RouteSolver(vq, cfg).refine(ids, sets);
+  double s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  printf("RouteSolver: B=%d, %d steps: %.2f s = %.4f s per sample-step (threads %d); error %.4f -> %.4f\n", B, steps, s,
+         s / (B * steps), torch::get_num_threads(), r.initial_control_error, r.final_control_error);
+  CHECK(std::isfinite(r.final_control_error));
 }
