@@ -434,27 +434,16 @@ class AnchorAdapterTrainer : public Trainable {
   }
 
   void tokenize_dataset() {
-    torch::NoGradGuard ng;
     const MotionSet& set = ctx_.data->set();
     VqTokenizer handle = prior_->tokenizer().model;
-    auto& tok = *handle;
-    const int64_t N = set.size(), J = set.num_joints(), Tm = set.t_max;
-    const int64_t L = (Tm + stride_ - 1) / stride_, Tp = L * stride_;
-    tokens_ = torch::zeros({N, L}, torch::kInt64);
-    token_lengths_ = torch::zeros({N}, torch::kInt64);
+    auto tc = tokenize_clips(*handle, set, ctx_.device);
+    tokens_ = tc.tokens;
+    token_lengths_ = tc.lengths;
+    // The ground truth of eq. (10), zero-padded to the tokens' frames.
+    const int64_t N = set.size(), J = set.num_joints(), Tm = set.t_max, Tp = tokens_.size(1) * stride_;
     world_ = torch::zeros({N, Tp, J, 3});
     world_.narrow(1, 0, Tm).copy_(
         torch::from_blob(const_cast<float*>(set.joints.data()), {static_cast<int64_t>(N), Tm, J, 3}, torch::kFloat32));
-    for (int64_t s = 0; s < N; s += 64) {
-      const int64_t n = std::min<int64_t>(64, N - s);
-      auto mask = torch::zeros({n, Tp}, torch::kBool);
-      for (int64_t b = 0; b < n; ++b) {
-        mask[b].narrow(0, 0, set.lengths[s + b]).fill_(true);
-        token_lengths_[s + b] = (set.lengths[s + b] + stride_ - 1) / stride_;
-      }
-      auto x = tok.normalize(world_.narrow(0, s, n).to(ctx_.device)).flatten(2);
-      tokens_.narrow(0, s, n).copy_(tok.encode(x, mask.to(ctx_.device)).to(torch::kCPU));
-    }
   }
 
   Losses controlled_loss(const std::vector<int64_t>& idx, const std::vector<std::string>& caps,
