@@ -250,7 +250,8 @@ TokenSampleResult run_sampler(const TokenPrior& prior, const std::vector<std::st
 }  // namespace
 
 TokenSampleResult sample_tmd(const TokenPrior& prior, const std::vector<std::string>& captions,
-                             const std::vector<int>& lengths, const TmdSamplerConfig& cfg, uint64_t seed) {
+                             const std::vector<int>& lengths, const TmdSamplerConfig& cfg, uint64_t seed,
+                             const TokenHooksFn& hooks) {
   if (!prior.is_tmd())
     fail("'{}' is a masked prior; sample it with the masked sampler (generator type masked)", prior.run_dir());
   const auto& pc = prior.tmd_config();
@@ -267,7 +268,10 @@ TokenSampleResult sample_tmd(const TokenPrior& prior, const std::vector<std::str
     const double h = 1.0 / cfg.steps;
     for (int k = 0; k < cfg.steps; ++k) {
       const double t = k * h;
-      auto logits = prior.guided_logits(x, torch::full({b.B}, t), text, b.valid, cfg.cfg_scale);
+      auto tv = torch::full({b.B}, t);
+      TokenTransformerHooks hk;
+      if (hooks) hk = hooks(b.start, x, tv.to(dev), text, b.valid);
+      auto logits = prior.guided_logits(x, tv, text, b.valid, cfg.cfg_scale, hooks ? &hk : nullptr);
       auto u = draw_uniform(b.gens, 3, b.L, b.full).to(dev);
       auto probs = torch::softmax(logits / cfg.temperature, -1);
       const bool last = k + 1 == cfg.steps;

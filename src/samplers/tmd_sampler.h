@@ -2,6 +2,7 @@
 // tokenizer, CFG on logits, the TMD transition sampler (eqs. (21)-(23)) and the
 // MoMask-style confidence re-masking sampler; both decode to world joints.
 #pragma once
+#include <functional>
 #include <memory>
 #include <string>
 #include <vector>
@@ -124,8 +125,15 @@ struct TokenSampleResult {
 // One motion per caption of `lengths[i]` frames (1..t_max): ceil(length / stride) tokens
 // are generated, decoded and trimmed. Each sample draws from its own generator seeded
 // by (seed, index), so a sample depends on neither batch_size nor the other samples.
+// Adapter hooks for one network call on rows [start, start + ids.size(0)) of a request:
+// current tokens ids [B, L], times t [B], the conditional text, valid [B, L] (AnchorRoute).
+using TokenHooksFn = std::function<TokenTransformerHooks(int64_t start, const torch::Tensor& ids,
+                                                         const torch::Tensor& t, const TextContext& text,
+                                                         const torch::Tensor& valid)>;
+// `hooks` (optional) conditions every step; guided_logits gives them to both CFG halves.
 TokenSampleResult sample_tmd(const TokenPrior& prior, const std::vector<std::string>& captions,
-                             const std::vector<int>& lengths, const TmdSamplerConfig& cfg, uint64_t seed);
+                             const std::vector<int>& lengths, const TmdSamplerConfig& cfg, uint64_t seed,
+                             const TokenHooksFn& hooks = {});
 TokenSampleResult sample_masked(const TokenPrior& prior, const std::vector<std::string>& captions,
                                 const std::vector<int>& lengths, const MaskedSamplerConfig& cfg, uint64_t seed);
 

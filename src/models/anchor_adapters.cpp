@@ -1,0 +1,554 @@
+// AnchorRoute's anchor condition path: adapter features, scaffold encoder, AnchorKV
+// (eqs. (13)-(15)), the cross-attention and ControlNet baselines of Table IV, the
+// controlled trainer of eq. (16) (`anchor_adapter`) and the run loader.
+#include "models/anchor_adapters.h"
+
+#include <ATen/CPUGeneratorImpl.h>
+#include <yaml-cpp/yaml.h>
+
+#include <cmath>
+#include <random>
+
+#include "core/atomic_file.h"
+#include "core/error.h"
+#include "data/skeleton.h"
+#include "models/flow_prior.h"
+#include "models/flow_transformer.h"
+#include "models/token_prior.h"
+#include "samplers/anchor_loss.h"
+#include "samplers/tmd_sampler.h"
+#include "train/trainable.h"
+#include "train/trainer.h"
+
+namespace mc {
+namespace nn = torch::nn;
+namespace F = torch::nn::functional;
+
+// ---------------------------------------------------------------- config
+
+void AnchorAdapterConfig::visit(FieldVisitor& v) {
+  v("adapter", adapter, "condition path: anchorkv (eqs. (14)-(15)), cross_attention or controlnet (Table IV baselines)",
+    one_of({"anchorkv", "cross_attention", "controlnet"}));
+  v("memory_width", memory_width, "width d_s of the token-aligned memory H^s (0 = the backbone's width)", at_least(0));
+  v("encoder_blocks", encoder_blocks, "residual conv blocks of the scaffold encoder after downsampling",
+    in_range(0, 8));
+  v("rank", rank, "rank r of AnchorKV's P_l U_l^K / P_l U_l^V, eq. (14)", at_least(1));
+  v("dual_context", dual_context,
+    "dual context: the scaffold memory also sees the text (condition MLP of the pooled sentence vector as a "
+    "zero-init FiLM, and a zero-init attention to the sequence-level text memory); off = anchors only");
+  v("heads", heads, "heads of the scaffold encoder's text attention and of the cross-attention adapter", at_least(1));
+  v("dropout", dropout, "dropout inside the trainable adapter layers", in_range(0.0, 0.9));
+  v("families", families, "control families drawn per training clip (root_3d, planar_root, body_point)");
+  v("anchor_counts", anchor_counts, "anchor counts K drawn per training clip (clamped to the clip's length)",
+    each(at_least(1)));
+  v("body_joints", body_joints, "joints a body-point anchor may control (fixes the feature width)",
+    each(at_least(0)));
+  v("sparse_keyjoint_prob", sparse_keyjoint_prob,
+    "probability that a training clip gets Table II's six-point set (all body_joints at the same frames)",
+    in_range(0.0, 1.0));
+  v("sparse_keyjoint_ratio", sparse_keyjoint_ratio, "fraction of frames of a six-point set", in_range(1e-6, 1.0));
+  v("lambda_anc", lambda_anc, "lambda_anc of eq. (16) (0 = CE only, Table IV 'without anchor loss')", at_least(0.0));
+  v("delta", delta, "support radius delta of eqs. (7)-(10), frames", in_range(0, 50));
+  v("cond_drop", cond_drop, "probability of the null text during adapter training (keeps CFG usable)",
+    in_range(0.0, 1.0));
+  v("tmd_run", tmd_run, "finished tmd_prior run directory ('' = train tmd_config on demand)");
+  v("tmd_config", tmd_config, "TMD training config run on demand when tmd_run is ''");
+  v("tmd_overrides", tmd_overrides, "key=value overrides for tmd_config");
+}
+
+std::string AnchorAdapterConfig::validate() const {
+  if (families.empty()) return "families is empty; give e.g. [root_3d, planar_root, body_point]";
+  for (auto& f : families) parse_anchor_family(f, "model.families");
+  if (anchor_counts.empty()) return "anchor_counts is empty; give e.g. [2, 4, 8, 16, 32]";
+  if (body_joints.empty()) return "body_joints is empty";
+  if (tmd_run.empty() && tmd_config.empty()) return "set model.tmd_run (a finished tmd_prior run) or model.tmd_config";
+  return "";
+}
+
+// ---------------------------------------------------------------- features
+
+namespace {
+const AnchorFamily kFamilies[3] = {AnchorFamily::root_3d, AnchorFamily::planar_root, AnchorFamily::body_point};
+}
+
+int64_t adapter_feature_width(const std::vector<int>& body_joints) {
+  int64_t w = 3;
+  for (auto f : kFamilies) w += anchor_feature_layout(f, body_joints).width();
+  return w;
+}
+
+torch::Tensor adapter_features(const AnchorSet& set, const std::vector<int>& body_joints) {
+  const int64_t T = set.frames;
+  auto out = torch::zeros({T, adapter_feature_width(body_joints)});
+  int64_t col = 0;
+  for (int i = 0; i < 3; ++i) {
+    auto layout = anchor_feature_layout(kFamilies[i], body_joints);
+    if (set.family == kFamilies[i] && set.size() > 0) {
+      FeatureMatrix m = anchor_features(set, layout);  // eqs. (5)-(6)
+      out.narrow(1, col, layout.width()).copy_(torch::from_blob(m.data(), {T, layout.width()}, torch::kFloat32));
+    }
+    col += layout.width();
+  }
+  for (int i = 0; i < 3; ++i)
+    if (set.family == kFamilies[i]) out.select(1, col + i).fill_(1.0);
+  return out;
+}
+
+// ---------------------------------------------------------------- helpers
+
+namespace {
+
+// Multi-head attention of q [B, Lq, D] over k, v [B, N, D] where key_valid [B, N] is true.
+torch::Tensor multi_head(const torch::Tensor& q, const torch::Tensor& k, const torch::Tensor& v,
+                         const torch::Tensor& key_valid, int64_t heads) {
+  const int64_t B = q.size(0), Lq = q.size(1), N = k.size(1), D = q.size(2), Dh = D / heads;
+  auto sh = [&](const torch::Tensor& x, int64_t n) { return x.view({B, n, heads, Dh}).transpose(1, 2); };
+  auto s = torch::matmul(sh(q, Lq), sh(k, N).transpose(-2, -1)) / std::sqrt(static_cast<double>(Dh));
+  s = s.masked_fill(key_valid.logical_not().view({B, 1, 1, N}), -1e9);
+  return torch::matmul(torch::softmax(s, -1), sh(v, N)).transpose(1, 2).reshape({B, Lq, D});
+}
+
+// Sinusoidal embedding of the token index, [L, dim].
+torch::Tensor token_positions(int64_t L, int64_t dim, torch::Device dev) {
+  return timestep_sinusoid(torch::arange(L, torch::TensorOptions().dtype(torch::kFloat32).device(dev)), dim);
+}
+
+nn::Linear zero_linear(int64_t in, int64_t out) {
+  nn::Linear l(in, out);
+  torch::NoGradGuard ng;
+  l->weight.zero_();
+  l->bias.zero_();
+  return l;
+}
+
+int64_t resolved_memory_width(const AnchorAdapterConfig& c, const TokenTransformerOptions& o) {
+  return c.memory_width > 0 ? c.memory_width : o.width;
+}
+
+int64_t log2_stride(int64_t stride) {
+  int64_t k = 0;
+  while ((int64_t{1} << k) < stride) ++k;
+  if ((int64_t{1} << k) != stride) fail("adapter: tokenizer stride {} is not a power of two", stride);
+  return k;
+}
+
+}  // namespace
+
+int64_t count_parameters(nn::Module& m) {
+  int64_t n = 0;
+  for (auto& p : m.parameters())
+    if (p.requires_grad()) n += p.numel();
+  return n;
+}
+
+// ---------------------------------------------------------------- scaffold encoder
+
+ScaffoldEncoderImpl::ScaffoldEncoderImpl(int64_t feature_width, int64_t d, int64_t stride, int64_t blocks,
+                                         bool dual, int64_t text_dim, int64_t heads_)
+    : dual_context(dual), heads(heads_) {
+  in = register_module("input_proj", nn::Linear(feature_width, d));  // not "in": a TorchScript keyword in archives
+  down = register_module("down", nn::ModuleList());
+  for (int64_t k = 0, n = log2_stride(stride); k < n; ++k)  // the tokenizer's x2 stages
+    down->push_back(nn::Conv1d(nn::Conv1dOptions(d, d, 4).stride(2).padding(1)));
+  res = register_module("res", nn::ModuleList());
+  for (int64_t b = 0; b < 2 * blocks; ++b) {
+    int64_t dil = 1;
+    for (int64_t i = 0; i < b / 2; ++i) dil *= 3;
+    res->push_back(nn::Conv1d(nn::Conv1dOptions(d, d, 3).padding(dil).dilation(dil)));
+  }
+  norm = register_module("norm", nn::LayerNorm(nn::LayerNormOptions({d})));
+  if (dual_context) {
+    if (d % heads != 0) fail("adapter: memory width {} is not a multiple of heads {}", d, heads);
+    film = register_module("film", zero_linear(text_dim, 2 * d));
+    tq = register_module("tq", nn::Linear(d, d));
+    tkv = register_module("tkv", nn::Linear(text_dim, 2 * d));
+    to = register_module("to", zero_linear(d, d));
+  }
+}
+
+torch::Tensor ScaffoldEncoderImpl::forward(const torch::Tensor& features, const TextContext& text) {
+  auto h = torch::silu(in(features)).transpose(1, 2);  // [B, d, T]
+  for (auto& m : *down) h = torch::silu(m->as<nn::Conv1d>()->forward(h));
+  for (size_t b = 0; b + 1 < res->size(); b += 2)
+    h = h + res[b + 1]->as<nn::Conv1d>()->forward(torch::silu(res[b]->as<nn::Conv1d>()->forward(torch::silu(h))));
+  h = h.transpose(1, 2);  // [B, L, d], eq. (13)
+  const int64_t L = h.size(1);
+  h = h + token_positions(L, h.size(2), h.device()).unsqueeze(0);
+  h = norm(h);
+  if (dual_context) {
+    auto fs = film(text.pooled).unsqueeze(1).chunk(2, -1);  // condition MLP of the pooled sentence vector
+    h = h * (1 + fs[0]) + fs[1];
+    auto kv = tkv(text.memory).chunk(2, -1);                 // the sequence-level text memory
+    h = h + to(multi_head(tq(h), kv[0], kv[1], text.memory_valid.to(torch::kBool), heads));
+  }
+  return h;
+}
+
+// ---------------------------------------------------------------- AnchorKV
+
+AnchorKVAdapterImpl::AnchorKVAdapterImpl(const AnchorAdapterConfig& c, const TokenTransformerOptions& o,
+                                         int64_t stride, int64_t feature_width)
+    : heads(o.heads), head_dim(o.head_dim()), rope_base(o.rope_base) {
+  const int64_t ds = resolved_memory_width(c, o), r = c.rank, d = o.width;
+  scaffold = register_module(
+      "scaffold", ScaffoldEncoder(feature_width, ds, stride, c.encoder_blocks, c.dual_context, o.text_dim, c.heads));
+  for (int64_t l = 0; l < o.depth; ++l) {
+    P.push_back(register_parameter(fmt::format("P{}", l), torch::randn({ds, r}) / std::sqrt(double(ds))));
+    UK.push_back(register_parameter(fmt::format("UK{}", l), torch::randn({r, d}) / std::sqrt(double(r))));
+    // Zero values: at initialisation the memory adds no content (it only takes attention mass).
+    UV.push_back(register_parameter(fmt::format("UV{}", l), torch::zeros({r, d})));
+  }
+}
+
+TokenTransformerHooks AnchorKVAdapterImpl::hooks(const AdapterInputs& in) {
+  auto Hs = scaffold(in.features, in.text);  // [B, L, d_s]
+  const int64_t B = Hs.size(0), L = Hs.size(1);
+  auto pos = torch::arange(L, torch::TensorOptions().dtype(torch::kFloat32).device(Hs.device()));
+  TokenTransformerHooks h;
+  for (size_t l = 0; l < P.size(); ++l) {
+    auto low = torch::matmul(Hs, P[l]);                         // H^s P_l
+    auto k = torch::matmul(low, UK[l]), v = torch::matmul(low, UV[l]);  // eq. (14)
+    // RoPE at the memory slot's token index: the backbone's queries carry RoPE, so
+    // <q_n, K^s_m> depends on n - m and token n can pick out its own slot.
+    k = apply_rope(k.view({B, L, heads, head_dim}).transpose(1, 2), pos, rope_base).transpose(1, 2).reshape({B, L, -1});
+    h.extra_kv.push_back({k, v, in.valid});  // eq. (15)
+  }
+  return h;
+}
+
+// ---------------------------------------------------------------- cross-attention baseline
+
+CrossAttentionAdapterImpl::CrossAttentionAdapterImpl(const AnchorAdapterConfig& c, TokenTransformer bb,
+                                                     int64_t stride, int64_t feature_width)
+    : backbone(bb), heads(c.heads) {
+  const auto& o = bb->opt;
+  const int64_t ds = resolved_memory_width(c, o), d = o.width;
+  if (d % heads != 0) fail("cross_attention adapter: backbone width {} is not a multiple of heads {}", d, heads);
+  scaffold = register_module(
+      "scaffold", ScaffoldEncoder(feature_width, ds, stride, c.encoder_blocks, c.dual_context, o.text_dim, c.heads));
+  mem_proj = register_module("mem_proj", nn::Linear(ds, d));
+  q = register_module("q", nn::ModuleList());
+  kv = register_module("kv", nn::ModuleList());
+  o_ = register_module("o", nn::ModuleList());
+  mlp = register_module("mlp", nn::ModuleList());
+  norm1 = register_module("norm1", nn::ModuleList());
+  norm2 = register_module("norm2", nn::ModuleList());
+  out = register_module("out", nn::ModuleList());
+  for (int64_t l = 0; l < o.depth; ++l) {
+    q->push_back(nn::Linear(d, d));
+    kv->push_back(nn::Linear(d, 2 * d));
+    o_->push_back(nn::Linear(d, d));
+    mlp->push_back(nn::Sequential(nn::Linear(d, 4 * d), nn::SiLU(), nn::Dropout(c.dropout), nn::Linear(4 * d, d)));
+    norm1->push_back(nn::LayerNorm(nn::LayerNormOptions({d})));
+    norm2->push_back(nn::LayerNorm(nn::LayerNormOptions({d})));
+    out->push_back(zero_linear(d, d));
+  }
+}
+
+TokenTransformerHooks CrossAttentionAdapterImpl::hooks(const AdapterInputs& in) {
+  auto Hs = scaffold(in.features, in.text);
+  const int64_t L = Hs.size(1), d = backbone->opt.width;
+  auto pe = token_positions(L, d, Hs.device()).unsqueeze(0);
+  auto mem = mem_proj(Hs) + pe;
+  torch::Tensor a;
+  {
+    torch::NoGradGuard ng;  // the frozen embedding table
+    a = backbone->embed(in.ids);
+  }
+  a = a + pe;
+  auto valid = in.valid.to(torch::kBool);
+  TokenTransformerHooks h;
+  for (size_t l = 0; l < q->size(); ++l) {
+    auto m = kv[l]->as<nn::Linear>()->forward(mem).chunk(2, -1);
+    auto qq = q[l]->as<nn::Linear>()->forward(norm1[l]->as<nn::LayerNorm>()->forward(a));
+    a = a + o_[l]->as<nn::Linear>()->forward(multi_head(qq, m[0], m[1], valid, heads));
+    a = a + mlp[l]->as<nn::Sequential>()->forward(norm2[l]->as<nn::LayerNorm>()->forward(a));
+    h.block_residuals.push_back(out[l]->as<nn::Linear>()->forward(a));
+  }
+  return h;
+}
+
+// ---------------------------------------------------------------- ControlNet baseline
+
+ControlNetAdapterImpl::ControlNetAdapterImpl(const AnchorAdapterConfig& c, TokenTransformer bb, int64_t stride,
+                                             int64_t feature_width)
+    : backbone(bb) {
+  const auto& o = bb->opt;
+  const int64_t ds = resolved_memory_width(c, o), d = o.width;
+  scaffold = register_module(
+      "scaffold", ScaffoldEncoder(feature_width, ds, stride, c.encoder_blocks, c.dual_context, o.text_dim, c.heads));
+  zero_in = register_module("zero_in", zero_linear(ds, d));
+  blocks = register_module("blocks", nn::ModuleList());
+  zero_out = register_module("zero_out", nn::ModuleList());
+  torch::NoGradGuard ng;
+  for (int64_t l = 0; l < o.depth; ++l) {
+    TokenBlock copy(o);
+    // The trainable copy starts as the frozen block.
+    auto src = bb->blocks[l]->named_parameters();
+    for (auto& p : copy->named_parameters()) p.value().copy_(src[p.key()]);
+    auto srcb = bb->blocks[l]->named_buffers();
+    for (auto& b : copy->named_buffers()) b.value().copy_(srcb[b.key()]);
+    blocks->push_back(copy);
+    zero_out->push_back(zero_linear(d, d));
+  }
+}
+
+TokenTransformerHooks ControlNetAdapterImpl::hooks(const AdapterInputs& in) {
+  auto Hs = scaffold(in.features, in.text);
+  const int64_t B = in.ids.size(0), L = in.ids.size(1);
+  torch::Tensor x, c;
+  {
+    torch::NoGradGuard ng;  // frozen embedding and conditioning
+    x = backbone->embed(in.ids);
+    c = backbone->conditioning(backbone->opt.use_time ? in.t.reshape({-1}).expand({B}) : torch::Tensor(),
+                               in.text.pooled);
+  }
+  auto h = x + zero_in(Hs);
+  auto pos = torch::arange(L, torch::TensorOptions().dtype(torch::kFloat32).device(h.device()));
+  auto valid = in.valid.to(torch::kBool);
+  TokenTransformerHooks hk;
+  for (size_t l = 0; l < blocks->size(); ++l) {
+    h = blocks[l]->as<TokenBlockImpl>()->forward(h, c, in.text, valid, pos);
+    hk.block_residuals.push_back(zero_out[l]->as<nn::Linear>()->forward(h));
+  }
+  return hk;
+}
+
+std::shared_ptr<AnchorAdapterModule> make_anchor_adapter(const AnchorAdapterConfig& c, TokenTransformer backbone,
+                                                         int64_t stride) {
+  const int64_t fw = adapter_feature_width(c.body_joints);
+  if (c.adapter == "anchorkv") return AnchorKVAdapter(c, backbone->opt, stride, fw).ptr();
+  if (c.adapter == "cross_attention") return CrossAttentionAdapter(c, backbone, stride, fw).ptr();
+  if (c.adapter == "controlnet") return ControlNetAdapter(c, backbone, stride, fw).ptr();
+  fail("model.adapter: unknown adapter '{}'; use anchorkv, cross_attention or controlnet", c.adapter);
+}
+
+// ---------------------------------------------------------------- trainer
+
+namespace {
+
+const char* kMetaFile = "adapter_meta.yaml";
+
+void freeze(nn::Module& m) {
+  for (auto& p : m.parameters()) p.set_requires_grad(false);
+}
+
+class AnchorAdapterTrainer : public Trainable {
+ public:
+  AnchorAdapterTrainer(const AnchorAdapterConfig& c, const TrainContext& ctx) : cfg_(c), ctx_(ctx) {
+    tmd_run_ = c.tmd_run.empty() ? train_on_demand(c.tmd_config, c.tmd_overrides) : c.tmd_run;
+    prior_ = std::make_shared<TokenPrior>(TokenPrior::load(tmd_run_, ctx.device));
+    if (!prior_->is_tmd()) fail("model.tmd_run: '{}' is not a tmd_prior run", tmd_run_);
+    prior_->tokenizer().check_compatible(ctx.data->set(), ctx.data->source());
+    // eq. (16) trains the condition path only: backbone, text encoder and decoder are frozen.
+    freeze(*prior_->net());
+    VqTokenizer tok = prior_->tokenizer().model;  // a handle: the loader's copy is const
+    freeze(*tok);
+    for (auto& f : c.families) families_.push_back(parse_anchor_family(f, "model.families"));
+    stride_ = prior_->stride();
+    adapter_ = make_anchor_adapter(c, prior_->net()->transformer, stride_);
+    adapter_->to(ctx.device);
+    tokenize_dataset();
+  }
+  nn::Module& module() override { return *adapter_; }
+  std::vector<torch::Tensor> trainable_parameters() override {
+    std::vector<torch::Tensor> out;
+    for (auto& p : adapter_->parameters())
+      if (p.requires_grad()) out.push_back(p);
+    return out;
+  }
+
+  LossOutput loss(const std::vector<int64_t>& idx) override {
+    const MotionSet& set = ctx_.data->set();
+    std::vector<std::string> caps;
+    std::vector<AnchorSet> sets;
+    for (int64_t i : idx) {
+      const auto& c = set.captions[i];
+      caps.push_back(c[torch::randint(0, static_cast<int64_t>(c.size()), {1}).item<int64_t>()]);
+      sets.push_back(draw_training_set(i, torch::randint(0, int64_t{1} << 62, {1}).item<int64_t>()));
+    }
+    const int64_t B = idx.size();
+    auto t = torch::rand({B});
+    auto drop = torch::rand({B}) < cfg_.cond_drop;
+    auto r = controlled_loss(idx, caps, sets, t, drop, nullptr);
+    LossOutput out;
+    out.loss = cfg_.lambda_anc > 0 ? r.ce + cfg_.lambda_anc * r.anc : r.ce;  // eq. (16)
+    out.parts = {{"ce", r.ce.detach()}, {"anc", r.anc.detach()}, {"ctrl_err", r.ctrl}};
+    return out;
+  }
+
+  // Validation CE and soft-decoded anchor error at t = 0.5 with fixed draws.
+  std::map<std::string, double> evaluate() override {
+    torch::NoGradGuard ng;
+    adapter_->eval();
+    auto idx = ctx_.data->split("val");
+    const MotionSet& set = ctx_.data->set();
+    auto gen = at::make_generator<at::CPUGeneratorImpl>(20240611);
+    double ce = 0, ctrl = 0, n = 0;
+    for (size_t s = 0; s < idx.size(); s += 32) {
+      std::vector<int64_t> chunk(idx.begin() + s, idx.begin() + std::min(idx.size(), s + 32));
+      std::vector<std::string> caps;
+      std::vector<AnchorSet> sets;
+      for (int64_t i : chunk) {
+        caps.push_back(set.captions[i][0]);
+        sets.push_back(draw_training_set(i, static_cast<int64_t>(i) * 7919 + 17));
+      }
+      const int64_t B = chunk.size();
+      auto r = controlled_loss(chunk, caps, sets, torch::full({B}, 0.5), torch::zeros({B}, torch::kBool), &gen);
+      ce += r.ce.item<double>() * B;
+      ctrl += r.ctrl.item<double>() * B;
+      n += B;
+    }
+    adapter_->train();
+    return {{"val_ce", ce / std::max(1.0, n)}, {"val_soft_control_error", ctrl / std::max(1.0, n)},
+            {"adapter_parameters", static_cast<double>(count_parameters(*adapter_))}};
+  }
+
+  void save_artifacts(const fs::path& outputs) override {
+    YAML::Emitter e;
+    e << YAML::BeginMap << YAML::Key << "tmd_run" << YAML::Value << tmd_run_ << YAML::Key << "adapter"
+      << YAML::Value << cfg_.adapter << YAML::Key << "trainable_parameters" << YAML::Value
+      << count_parameters(*adapter_) << YAML::Key << "feature_width" << YAML::Value
+      << adapter_feature_width(cfg_.body_joints) << YAML::Key << "data" << YAML::Value << ctx_.data->source()
+      << YAML::EndMap;
+    write_file_atomic(outputs / kMetaFile, std::string(e.c_str()) + "\n");
+    write_file_atomic(outputs / "trainable_parameters.txt", fmt::format("{}\n", count_parameters(*adapter_)));
+  }
+
+ private:
+  struct Losses {
+    torch::Tensor ce, anc, ctrl;  // scalars; ctrl = mean anchor error of the soft decode (metres)
+  };
+
+  AnchorSet draw_training_set(int64_t clip, int64_t seed) const {
+    const MotionSet& set = ctx_.data->set();
+    std::mt19937_64 rng(static_cast<uint64_t>(seed));
+    const int T = set.lengths[clip], J = set.num_joints();
+    const float* m = set.joints.data() + clip * set.clip_stride();
+    std::uniform_real_distribution<double> u(0.0, 1.0);
+    if (cfg_.sparse_keyjoint_prob > 0 && u(rng) < cfg_.sparse_keyjoint_prob)
+      return draw_sparse_keyjoint_set(m, T, J, rng, cfg_.sparse_keyjoint_ratio, cfg_.body_joints);
+    AnchorFamily f = families_[rng() % families_.size()];
+    int K = std::min(cfg_.anchor_counts[rng() % cfg_.anchor_counts.size()], T);
+    return draw_anchor_set(f, K, m, T, J, rng, cfg_.body_joints);
+  }
+
+  void tokenize_dataset() {
+    const MotionSet& set = ctx_.data->set();
+    VqTokenizer handle = prior_->tokenizer().model;
+    auto tc = tokenize_clips(*handle, set, ctx_.device);
+    tokens_ = tc.tokens;
+    token_lengths_ = tc.lengths;
+    // The ground truth of eq. (10), zero-padded to the tokens' frames.
+    const int64_t N = set.size(), J = set.num_joints(), Tm = set.t_max, Tp = tokens_.size(1) * stride_;
+    world_ = torch::zeros({N, Tp, J, 3});
+    world_.narrow(1, 0, Tm).copy_(
+        torch::from_blob(const_cast<float*>(set.joints.data()), {static_cast<int64_t>(N), Tm, J, 3}, torch::kFloat32));
+  }
+
+  Losses controlled_loss(const std::vector<int64_t>& idx, const std::vector<std::string>& caps,
+                         const std::vector<AnchorSet>& sets, const torch::Tensor& t, const torch::Tensor& drop,
+                         at::Generator* gen) {
+    const auto dev = ctx_.device;
+    const auto& pc = prior_->tmd_config();
+    const int64_t B = idx.size(), L = tokens_.size(1), Tp = L * stride_, K = prior_->codebook_size();
+    auto ix = torch::tensor(idx, torch::kInt64);
+    auto x1 = tokens_.index_select(0, ix).to(dev);
+    auto n = token_lengths_.index_select(0, ix);
+    auto valid = (torch::arange(L).unsqueeze(0) < n.unsqueeze(1)).to(dev);
+    // eq. (19): the TMD corruption path, t ~ U[0, 1 - eps).
+    auto tt = (t * (1 - pc.t_eps)).to(dev);
+    auto probs = tmd_path_probs(prior_->distance(), x1, tmd_beta(tt, pc.beta_c, pc.beta_a).view({B, 1}));
+    auto flat = probs.reshape({B * L, K}).to(torch::kCPU);
+    auto xin = (gen ? torch::multinomial(flat, 1, false, *gen) : torch::multinomial(flat, 1)).view({B, L}).to(dev);
+    auto text = prior_->encode_texts(caps);
+    {
+      torch::NoGradGuard ng;
+      text = prior_->net()->drop_condition(text, drop.to(dev));
+    }
+    auto feats = torch::zeros({B, Tp, adapter_feature_width(cfg_.body_joints)});
+    for (int64_t b = 0; b < B; ++b)
+      feats[b].narrow(0, 0, sets[b].frames).copy_(adapter_features(sets[b], cfg_.body_joints));
+    AdapterInputs in{xin, tt, text, valid, feats.to(dev)};
+    auto hooks = adapter_->hooks(in);
+    auto logits = prior_->net()->transformer->forward(xin, tt, text, valid, &hooks).logits;  // [B, L, K]
+    auto sel = valid.reshape({-1});
+    Losses r;
+    r.ce = F::cross_entropy(logits.reshape({B * L, K}).index({sel}), x1.reshape({-1}).index({sel}));  // eq. (20)
+    // eq. (10) through the differentiable soft decode: expected code embedding -> frozen decoder.
+    VqTokenizer handle = prior_->tokenizer().model;
+    auto& tok = *handle;
+    const int64_t J = prior_->num_joints();
+    auto world = tok.denormalize(tok.soft_decode(torch::softmax(logits, -1)).view({B, Tp, J, 3}));
+    auto gt = world_.index_select(0, ix).to(dev);
+    auto support = make_support_batch(sets, cfg_.delta, gt);
+    // Mean over support entries (not the sum) so lambda_anc does not scale with K.
+    r.anc = anchor_loss(world, support).sum() / support.valid.sum().clamp_min(1.0);
+    r.ctrl = mean_control_error(world, make_anchor_batch(sets, dev)).detach();
+    if (!torch::isfinite(r.ce).item<bool>() || !torch::isfinite(r.anc).item<bool>())
+      fail("anchor_adapter: non-finite loss (ce {}, anchor {}); lower optim.lr", r.ce.item<double>(),
+           r.anc.item<double>());
+    return r;
+  }
+
+  AnchorAdapterConfig cfg_;
+  TrainContext ctx_;
+  std::string tmd_run_;
+  std::shared_ptr<TokenPrior> prior_;
+  std::shared_ptr<AnchorAdapterModule> adapter_;
+  std::vector<AnchorFamily> families_;
+  int64_t stride_ = 4;
+  torch::Tensor tokens_, token_lengths_;  // [N, L], [N] CPU
+  torch::Tensor world_;                   // [N, L * stride, J, 3] ground truth, zero-padded
+};
+
+std::unique_ptr<Trainable> make_adapter_trainer(const Config& c, const TrainContext& ctx) {
+  return std::make_unique<AnchorAdapterTrainer>(dynamic_cast<const AnchorAdapterConfig&>(c), ctx);
+}
+
+}  // namespace
+
+MC_REGISTER_MODEL("anchor_adapter", AnchorAdapterConfig, make_adapter_trainer,
+                  "AnchorRoute's anchor condition path (AnchorKV / cross-attention / ControlNet) on a frozen TMD "
+                  "prior, eq. (16)");
+
+// ---------------------------------------------------------------- loading
+
+LoadedAnchorAdapter load_anchor_adapter(const std::string& run_dir, torch::Device device) {
+  fs::path dir(run_dir);
+  fs::path final_pt = dir / "checkpoints" / "final.pt", meta_path = dir / "outputs" / kMetaFile;
+  for (const fs::path& p : {dir / "config.yaml", final_pt, meta_path})
+    if (!fs::exists(p))
+      fail("anchor adapter run '{}' is incomplete: '{}' is missing; train it with `motionctl train "
+           "configs/adapter/anchorkv_tiny.yaml` (or set adapter_config to train on demand)",
+           run_dir, p.string());
+  TrainJobConfig job;
+  parse_config(compose_config((dir / "config.yaml").string()), job);
+  if (job.model.type != "anchor_adapter")
+    fail("'{}' is a run of model type '{}', not an anchor_adapter", run_dir, job.model.type);
+  LoadedAnchorAdapter out;
+  out.run_dir = run_dir;
+  out.cfg = dynamic_cast<const AnchorAdapterConfig&>(*job.model.cfg);
+  std::string tmd_run;
+  try {
+    YAML::Node meta = YAML::LoadFile(meta_path.string());
+    tmd_run = meta["tmd_run"].as<std::string>();
+  } catch (const YAML::Exception& e) {
+    fail("'{}' is corrupt: {}", meta_path.string(), e.what());
+  }
+  out.prior = std::make_shared<TokenPrior>(TokenPrior::load(tmd_run, device));
+  out.module = make_anchor_adapter(out.cfg, out.prior->net()->transformer, out.prior->stride());
+  try {
+    torch::serialize::InputArchive ar;
+    ar.load_from(final_pt.string());
+    out.module->load(ar);
+  } catch (const c10::Error&) {
+    fail("anchor adapter checkpoint '{}' is unreadable or does not match its config.yaml", final_pt.string());
+  }
+  out.module->to(device);
+  out.module->eval();
+  out.trainable_parameters = count_parameters(*out.module);
+  return out;
+}
+
+}  // namespace mc

@@ -1,0 +1,154 @@
+// AnchorRoute's anchor condition path on a frozen TMD prior (§3.2, eqs. (13)-(16)):
+// the scaffold encoder, AnchorKV and the Table IV baselines (cross-attention, ControlNet),
+// the adapter feature layout, the controlled trainer (`anchor_adapter`) and its run loader.
+#pragma once
+#include <memory>
+#include <string>
+#include <vector>
+
+#include <torch/torch.h>
+
+#include "control/anchors.h"
+#include "core/config.h"
+#include "models/token_transformer.h"
+
+namespace mc {
+
+class TokenPrior;
+
+// `model:` section of a controlled-training run (model.type = anchor_adapter).
+// Defaults and the readings behind them: docs/choices.md ("AnchorRoute: adapters").
+struct AnchorAdapterConfig : Config {
+  std::string adapter = "anchorkv";  // anchorkv | cross_attention | controlnet (Table IV)
+  int memory_width = 0;              // d_s of H^s; 0 = the backbone's width (eq. (13): H^s in R^{L x d})
+  int encoder_blocks = 2;            // residual conv blocks after the scaffold encoder's downsampling
+  int rank = 16;                     // r of eq. (14)
+  bool dual_context = true;          // text-conditioned scaffold memory (see dual_context help)
+  int heads = 4;                     // heads of the scaffold encoder's text attention / the cross-attention adapter
+  double dropout = 0.0;              // inside trainable adapter layers
+  // Anchor draws per training clip (from the clip's ground truth).
+  std::vector<std::string> families = {"root_3d", "planar_root", "body_point"};
+  std::vector<int> anchor_counts = {2, 4, 8, 16, 32};
+  std::vector<int> body_joints = {0, 10, 11, 15, 20, 21};
+  double sparse_keyjoint_prob = 0.0;  // probability of a Table II six-point set instead
+  double sparse_keyjoint_ratio = 0.3;
+  // eq. (16)
+  double lambda_anc = 0.3;
+  int delta = 2;
+  double cond_drop = 0.1;
+  // The frozen TMD prior: a finished run, or its training config trained on demand.
+  std::string tmd_run;
+  std::string tmd_config = "configs/tmd/tmd_tiny.yaml";
+  std::vector<std::string> tmd_overrides;
+
+  void visit(FieldVisitor& v) override;
+  std::string validate() const override;
+};
+
+// ---------------------------------------------------------------- features
+
+// The adapter's frame-level input: the eq. (5)-(6) features of all three family layouts
+// side by side (root_3d, planar_root, body_point over `body_joints`; the set fills its own
+// family's block, the others stay 0) plus a one-hot of the family, so one model with one
+// input width serves every family. Width = 11 + 8 + (3 * 3G + 2G) + 3 for G body joints.
+int64_t adapter_feature_width(const std::vector<int>& body_joints);
+// [frames, width] float CPU. UserError if a body-point anchor's joint is not in body_joints.
+torch::Tensor adapter_features(const AnchorSet& set, const std::vector<int>& body_joints);
+
+// ---------------------------------------------------------------- modules
+
+// What an adapter sees for one backbone call (all on the backbone's device).
+struct AdapterInputs {
+  torch::Tensor ids;       // [B, L] current tokens
+  torch::Tensor t;         // [B] times (TMD)
+  TextContext text;        // the (possibly dropped) text context of the same call
+  torch::Tensor valid;     // [B, L] bool
+  torch::Tensor features;  // [B, L * stride, F] adapter_features, zero past each clip
+};
+
+// Scaffold encoder (eq. (13)): Linear(F -> d_s), log2(stride) stride-2 convs (the
+// tokenizer's temporal downsampling), residual conv blocks, RMS-normalised; with dual
+// context also a condition MLP of the pooled text (zero-init FiLM) and a zero-init
+// cross-attention of the memory to the text memory. -> H^s [B, L, d_s].
+struct ScaffoldEncoderImpl : torch::nn::Module {
+  ScaffoldEncoderImpl(int64_t feature_width, int64_t memory_width, int64_t stride, int64_t blocks,
+                      bool dual_context, int64_t text_dim, int64_t heads);
+  torch::Tensor forward(const torch::Tensor& features, const TextContext& text);
+  torch::nn::Linear in{nullptr};
+  torch::nn::ModuleList down{nullptr}, res{nullptr};
+  torch::nn::LayerNorm norm{nullptr};
+  bool dual_context;
+  int64_t heads;
+  torch::nn::Linear film{nullptr};                 // pooled text -> (scale, shift), zero-init
+  torch::nn::Linear tq{nullptr}, tkv{nullptr}, to{nullptr};  // memory -> text memory attention, `to` zero-init
+};
+TORCH_MODULE(ScaffoldEncoder);
+
+// Common interface: an adapter turns the features (and the call's tokens, time and
+// text) into the backbone's hooks. Parameters of the backbone are never registered.
+struct AnchorAdapterModule : torch::nn::Module {
+  virtual TokenTransformerHooks hooks(const AdapterInputs& in) = 0;
+  ScaffoldEncoder scaffold{nullptr};
+};
+
+// AnchorKV, eqs. (14)-(15): per block K^s = H^s P U^K, V^s = H^s P U^V (rank r), appended to
+// the block's self-attention. The keys get RoPE at their token index so motion token n can
+// find memory slot n (the backbone's queries carry RoPE). U^V starts at zero.
+struct AnchorKVAdapterImpl : AnchorAdapterModule {
+  AnchorKVAdapterImpl(const AnchorAdapterConfig& c, const TokenTransformerOptions& backbone, int64_t stride,
+                      int64_t feature_width);
+  TokenTransformerHooks hooks(const AdapterInputs& in) override;
+  std::vector<torch::Tensor> P, UK, UV;  // per block [d_s, r], [r, d], [r, d]
+  int64_t heads, head_dim;
+  double rope_base;
+};
+TORCH_MODULE(AnchorKVAdapter);
+
+// Table IV "Cross Attention": a side stream started from the frozen token embeddings
+// runs one (cross-attention to H^s, MLP) layer per block; a zero-init Linear of its
+// state after layer l is block l's residual (block_residuals; the side stream's queries
+// are its own state, not the backbone's hidden state, which the hooks cannot read).
+struct CrossAttentionAdapterImpl : AnchorAdapterModule {
+  CrossAttentionAdapterImpl(const AnchorAdapterConfig& c, TokenTransformer backbone, int64_t stride,
+                            int64_t feature_width);
+  TokenTransformerHooks hooks(const AdapterInputs& in) override;
+  TokenTransformer backbone{nullptr};  // not registered: frozen
+  torch::nn::ModuleList q{nullptr}, kv{nullptr}, o_{nullptr}, mlp{nullptr}, norm1{nullptr}, norm2{nullptr},
+      out{nullptr};
+  torch::nn::Linear mem_proj{nullptr};
+  int64_t heads;
+};
+TORCH_MODULE(CrossAttentionAdapter);
+
+// Table IV "ControlNet" (reference-facts §6): a trainable copy of every backbone block,
+// initialised from it, fed the frozen token embedding plus a zero-init projection of the
+// control encoder's memory H^s; a zero-init Linear of copy l's output is block l's residual.
+struct ControlNetAdapterImpl : AnchorAdapterModule {
+  ControlNetAdapterImpl(const AnchorAdapterConfig& c, TokenTransformer backbone, int64_t stride,
+                        int64_t feature_width);
+  TokenTransformerHooks hooks(const AdapterInputs& in) override;
+  TokenTransformer backbone{nullptr};  // not registered: frozen
+  torch::nn::ModuleList blocks{nullptr}, zero_out{nullptr};
+  torch::nn::Linear zero_in{nullptr};
+};
+TORCH_MODULE(ControlNetAdapter);
+
+// The adapter `c.adapter` names, for `backbone` (whose tokenizer has `stride`).
+std::shared_ptr<AnchorAdapterModule> make_anchor_adapter(const AnchorAdapterConfig& c, TokenTransformer backbone,
+                                                         int64_t stride);
+int64_t count_parameters(torch::nn::Module& m);
+
+// ---------------------------------------------------------------- loading
+
+// A finished anchor_adapter run (config.yaml, checkpoints/final.pt, outputs/adapter_meta.yaml)
+// with the TMD prior it was trained on, in eval mode.
+struct LoadedAnchorAdapter {
+  std::shared_ptr<AnchorAdapterModule> module;
+  std::shared_ptr<TokenPrior> prior;
+  AnchorAdapterConfig cfg;
+  std::string run_dir;
+  int64_t trainable_parameters = 0;
+};
+LoadedAnchorAdapter load_anchor_adapter(const std::string& run_dir, torch::Device device = torch::kCPU);
+
+}  // namespace mc

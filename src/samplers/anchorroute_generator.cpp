@@ -1,0 +1,176 @@
+// Generator `anchorroute`: TMD sampling conditioned on each task's anchors through a
+// trained anchor adapter (AnchorKV or a Table IV baseline; none = the frozen TMD prior),
+// then optional RouteSolver refinement (§3.4) of the generated tokens.
+#include <chrono>
+#include <memory>
+
+#include "control/anchors.h"
+#include "core/error.h"
+#include "models/anchor_adapters.h"
+#include "models/token_prior.h"
+#include "samplers/anchor_loss.h"
+#include "samplers/motion_generator.h"
+#include "samplers/route_solver.h"
+#include "samplers/tmd_sampler.h"
+
+namespace mc {
+
+namespace {
+
+class AnchorRouteGenerator : public MotionGenerator {
+ public:
+  AnchorRouteGenerator(std::shared_ptr<TokenPrior> prior, std::shared_ptr<AnchorAdapterModule> adapter,
+                       AnchorAdapterConfig adapter_cfg, std::string adapter_run, TmdSamplerConfig sampler,
+                       RouteSolverConfig route, int route_batch)
+      : prior_(std::move(prior)),
+        adapter_(std::move(adapter)),
+        acfg_(std::move(adapter_cfg)),
+        adapter_run_(std::move(adapter_run)),
+        sampler_(std::move(sampler)),
+        route_(std::move(route)),
+        route_batch_(route_batch) {}
+
+  GeneratedMotions generate(const std::vector<ControlTask>& tasks, uint64_t seed) override {
+    const int64_t N = tasks.size(), s = prior_->stride();
+    std::vector<std::string> captions;
+    std::vector<int> lengths;
+    std::vector<AnchorSet> sets;
+    int64_t max_tokens = 1;
+    for (const auto& t : tasks) {
+      captions.push_back(t.caption);
+      lengths.push_back(t.length);
+      AnchorSet a;
+      try {
+        a = anchors_from_spec(t.spec, t.length, prior_->skeleton(), t.source.empty() ? nullptr : t.source.data());
+      } catch (const UserError& e) {
+        fail("generator anchorroute: task '{}' cannot be used: {}", t.id, e.what());
+      }
+      if (a.size() == 0)
+        fail("generator anchorroute: task '{}' has no anchors; AnchorRoute needs keyframe, trajectory or "
+             "planar_root constraints (use generator tmd for unconstrained text-to-motion)",
+             t.id);
+      sets.push_back(std::move(a));
+      max_tokens = std::max<int64_t>(max_tokens, (t.length + s - 1) / s);
+    }
+    auto t0 = std::chrono::steady_clock::now();
+    TokenHooksFn hooks;
+    torch::Tensor feats;
+    if (adapter_) {
+      feats = torch::zeros({N, max_tokens * s, adapter_feature_width(acfg_.body_joints)});
+      for (int64_t i = 0; i < N; ++i) {
+        try {
+          feats[i].narrow(0, 0, sets[i].frames).copy_(adapter_features(sets[i], acfg_.body_joints));
+        } catch (const UserError& e) {
+          fail("generator anchorroute: task '{}': the adapter '{}' cannot read its anchors: {}", tasks[i].id,
+               adapter_run_, e.what());
+        }
+      }
+      const auto dev = prior_->device();
+      hooks = [&, dev](int64_t start, const torch::Tensor& ids, const torch::Tensor& t, const TextContext& text,
+                       const torch::Tensor& valid) {
+        const int64_t B = ids.size(0), L = ids.size(1);
+        AdapterInputs in{ids, t, text, valid, feats.narrow(0, start, B).narrow(1, 0, L * s).to(dev)};
+        return adapter_->hooks(in);
+      };
+    }
+    auto r = sample_tmd(*prior_, captions, lengths, sampler_, seed, hooks);
+    GeneratedMotions out;
+    out.world = r.world;
+    out.lengths = lengths;
+    const double err0 = mean_control_error(r.world, make_anchor_batch(sets)).item<double>();
+    out.notes.push_back(describe());
+    out.notes.push_back(fmt::format("trainable parameters: {}", adapter_ ? count_parameters(*adapter_) : 0));
+    out.notes.push_back(fmt::format("generator control error: {:.4f} m", err0));
+    if (route_.steps > 0) {
+      RouteSolver solver(prior_->tokenizer().model, route_);
+      for (int64_t start = 0; start < N; start += route_batch_) {
+        const int64_t B = std::min<int64_t>(route_batch_, N - start);
+        int64_t L = 1;
+        for (int64_t i = 0; i < B; ++i) L = std::max(L, r.tokens[start + i].size(0));
+        auto ids = torch::zeros({B, L}, torch::kInt64);  // padding tokens decode past each length and are cut
+        std::vector<AnchorSet> bs(sets.begin() + start, sets.begin() + start + B);
+        std::vector<int> bl(lengths.begin() + start, lengths.begin() + start + B);
+        for (int64_t i = 0; i < B; ++i) ids[i].narrow(0, 0, r.tokens[start + i].size(0)).copy_(r.tokens[start + i]);
+        auto res = solver.refine(ids.to(prior_->device()), bs, seed ^ (0x5eedull + start), bl);
+        auto w = res.world.to(torch::kCPU);
+        for (int64_t i = 0; i < B; ++i) {
+          out.world[start + i].zero_();
+          out.world[start + i].narrow(0, 0, bl[i]).copy_(w[i].narrow(0, 0, bl[i]));
+        }
+      }
+      if (!torch::isfinite(out.world).all().item<bool>())
+        fail("generator anchorroute: RouteSolver produced non-finite joints; lower route.lr");
+      out.notes.push_back(fmt::format("RS{} control error: {:.4f} m", route_.steps,
+                                      mean_control_error(out.world, make_anchor_batch(sets)).item<double>()));
+    }
+    out.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+    return out;
+  }
+
+  std::string describe() const override {
+    std::string a = adapter_ ? fmt::format("{} adapter {}", acfg_.adapter, adapter_run_) : "no adapter";
+    return fmt::format("AnchorRoute: TMD prior {} ({} steps, cfg {}), {}, RouteSolver {}", prior_->run_dir(),
+                       sampler_.steps, sampler_.cfg_scale, a,
+                       route_.steps > 0 ? fmt::format("RS{} ({} update, {} basis, {} activity)", route_.steps,
+                                                      route_.update, route_.basis, route_.activity)
+                                        : std::string("off"));
+  }
+
+ private:
+  std::shared_ptr<TokenPrior> prior_;
+  std::shared_ptr<AnchorAdapterModule> adapter_;
+  AnchorAdapterConfig acfg_;
+  std::string adapter_run_;
+  TmdSamplerConfig sampler_;
+  RouteSolverConfig route_;
+  int route_batch_;
+};
+
+}  // namespace
+
+struct AnchorRouteGeneratorConfig : GeneratorConfig {
+  std::string adapter_run;
+  std::string adapter_config;
+  std::vector<std::string> adapter_overrides;
+  std::string prior_run;
+  std::string prior_config = "configs/tmd/tmd_tiny.yaml";
+  std::vector<std::string> prior_overrides;
+  TmdSamplerConfig sampler;
+  RouteSolverConfig route;
+  int route_batch = 16;
+  void visit(FieldVisitor& v) override {
+    v("adapter_run", adapter_run, "finished anchor_adapter run (its TMD prior is used); '' with adapter_config '' = "
+      "the frozen TMD prior without generation-time conditioning ('TMD w/ solver')");
+    v("adapter_config", adapter_config, "anchor_adapter training config run on demand when adapter_run is ''");
+    v("adapter_overrides", adapter_overrides, "key=value overrides for adapter_config");
+    v("prior_run", prior_run, "without an adapter: finished tmd_prior run ('' = train prior_config on demand)");
+    v("prior_config", prior_config, "without an adapter: TMD training config run on demand");
+    v("prior_overrides", prior_overrides, "key=value overrides for prior_config");
+    v("sampler", sampler, "TMD transition sampler (eqs. (21)-(23))");
+    v("route", route, "RouteSolver refinement (steps 0 = off; RS100 / RS200 / RS500 and the Table V/VI variants)");
+    v("route_batch", route_batch, "motions refined together", at_least(1));
+  }
+  std::unique_ptr<MotionGenerator> make(const GeneratorContext& ctx) const override {
+    std::string run = adapter_run;
+    if (run.empty() && !adapter_config.empty()) run = train_on_demand(adapter_config, adapter_overrides);
+    if (!run.empty()) {
+      auto a = load_anchor_adapter(run, ctx.device);
+      return std::make_unique<AnchorRouteGenerator>(a.prior, a.module, a.cfg, run, sampler, route, route_batch);
+    }
+    std::string p = prior_run;
+    if (p.empty()) {
+      if (prior_config.empty()) fail("generator anchorroute: set adapter_run/adapter_config or prior_run/prior_config");
+      p = train_on_demand(prior_config, prior_overrides);
+    }
+    auto prior = std::make_shared<TokenPrior>(TokenPrior::load(p, ctx.device));
+    if (!prior->is_tmd()) fail("generator anchorroute: '{}' is not a tmd_prior run", p);
+    return std::make_unique<AnchorRouteGenerator>(prior, nullptr, AnchorAdapterConfig{}, "", sampler, route,
+                                                  route_batch);
+  }
+};
+
+MC_REGISTER_GENERATOR("anchorroute", AnchorRouteGeneratorConfig,
+                      "AnchorRoute: TMD + anchor adapter (AnchorKV) conditioned on each task's anchors, then "
+                      "RouteSolver refinement");
+
+}  // namespace mc

@@ -1,0 +1,245 @@
+// Anchor adapters (AnchorRoute §3.2): feature layout, AnchorKV's per-layer key/value
+// memory, zero-init baselines leaving the backbone unchanged, parameter counts, and
+// eq. (16) steps that move only adapter weights (backbone and decoder stay bit-identical).
+#include <catch2/catch.hpp>
+
+#include <random>
+
+#include "core/error.h"
+#include "models/anchor_adapters.h"
+#include "models/vq_tokenizer.h"
+#include "samplers/anchor_loss.h"
+
+using namespace mc;
+
+namespace {
+
+TokenTransformerOptions backbone_options() {
+  TokenTransformerOptions o;
+  o.num_codes = 16;
+  o.depth = 3;
+  o.width = 32;
+  o.heads = 4;
+  o.dropout = 0.0;
+  o.text_dim = 24;
+  o.freq_dim = 16;
+  return o;
+}
+
+// A random, frozen backbone (an untrained AdaLN-Zero net would have zero logits).
+TokenTransformer frozen_backbone(const TokenTransformerOptions& o, uint64_t seed) {
+  torch::manual_seed(seed);
+  TokenTransformer net(o);
+  torch::NoGradGuard ng;
+  for (auto& p : net->parameters()) {
+    p.normal_(0.0, 0.2);
+    p.set_requires_grad(false);
+  }
+  net->eval();
+  return net;
+}
+
+AnchorAdapterConfig adapter_config(const std::string& type) {
+  AnchorAdapterConfig c;
+  c.adapter = type;
+  c.rank = 4;
+  c.encoder_blocks = 1;
+  c.heads = 4;
+  return c;
+}
+
+TextContext random_text(int64_t B, int64_t W, int64_t dim) {
+  TextContext c;
+  c.pooled = torch::randn({B, dim});
+  c.memory = torch::randn({B, W, dim});
+  c.memory_valid = torch::ones({B, W}, torch::kBool);
+  return c;
+}
+
+// A motion [T, 22, 3] with a drifting root, for anchor draws.
+std::vector<float> toy_motion(int T) {
+  std::vector<float> m(static_cast<size_t>(T) * 22 * 3);
+  for (int t = 0; t < T; ++t)
+    for (int j = 0; j < 22; ++j) {
+      m[(t * 22 + j) * 3 + 0] = 0.05f * t + 0.01f * j;
+      m[(t * 22 + j) * 3 + 1] = 0.9f + 0.02f * j;
+      m[(t * 22 + j) * 3 + 2] = 0.02f * t - 0.01f * j;
+    }
+  return m;
+}
+
+struct Inputs {
+  AdapterInputs in;
+  int64_t L;
+};
+
+Inputs make_inputs(const AnchorAdapterConfig& c, const TokenTransformerOptions& o, int64_t B, int64_t L,
+                   int64_t stride) {
+  torch::manual_seed(3);
+  auto motion = toy_motion(static_cast<int>(L * stride));
+  std::mt19937_64 rng(5);
+  Inputs r;
+  r.L = L;
+  r.in.ids = torch::randint(0, o.num_codes, {B, L}, torch::kInt64);
+  r.in.t = torch::rand({B});
+  r.in.text = random_text(B, 5, o.text_dim);
+  r.in.valid = torch::ones({B, L}, torch::kBool);
+  r.in.valid[1].narrow(0, L - 2, 2).fill_(false);
+  auto feats = torch::zeros({B, L * stride, adapter_feature_width(c.body_joints)});
+  for (int64_t b = 0; b < B; ++b) {
+    auto fam = b % 3 == 0 ? AnchorFamily::root_3d : b % 3 == 1 ? AnchorFamily::planar_root : AnchorFamily::body_point;
+    auto set = draw_anchor_set(fam, 4, motion.data(), static_cast<int>(L * stride), 22, rng, c.body_joints);
+    feats[b].copy_(adapter_features(set, c.body_joints));
+  }
+  r.in.features = feats;
+  return r;
+}
+
+}  // namespace
+
+TEST_CASE("adapter features: one block per family plus a family one-hot", "[anchorkv]") {
+  std::vector<int> bj = {0, 10, 11, 15, 20, 21};
+  CHECK(adapter_feature_width(bj) == 11 + 8 + (3 * 18 + 2 * 6) + 3);
+  auto motion = toy_motion(40);
+  std::mt19937_64 rng(1);
+  auto root = draw_anchor_set(AnchorFamily::root_3d, 3, motion.data(), 40, 22, rng, bj);
+  auto f = adapter_features(root, bj);
+  REQUIRE(f.sizes().vec() == std::vector<int64_t>{40, 88});
+  // The root_3d block equals eqs. (5)-(6) for its own layout; other families' blocks are 0.
+  FeatureMatrix m = anchor_features(root, anchor_feature_layout(AnchorFamily::root_3d, bj));
+  auto own = torch::from_blob(m.data(), {40, 11}, torch::kFloat32);
+  CHECK(torch::equal(f.narrow(1, 0, 11), own));
+  CHECK(f.narrow(1, 11, 88 - 11 - 3).abs().max().item<float>() == 0.0f);
+  CHECK(torch::equal(f.narrow(1, 85, 3)[0], torch::tensor({1.0f, 0.0f, 0.0f})));
+  auto body = draw_anchor_set(AnchorFamily::body_point, 3, motion.data(), 40, 22, rng, bj);
+  auto fb = adapter_features(body, bj);
+  CHECK(fb.narrow(1, 0, 19).abs().max().item<float>() == 0.0f);
+  CHECK(fb.narrow(1, 19, 66).abs().max().item<float>() > 0.0f);
+  CHECK(torch::equal(fb.narrow(1, 85, 3)[5], torch::tensor({0.0f, 0.0f, 1.0f})));
+  // A body-point anchor on a joint outside the layout is a clear error.
+  auto other = draw_anchor_set(AnchorFamily::body_point, 2, motion.data(), 40, 22, rng, {7});
+  CHECK_THROWS_AS(adapter_features(other, bj), UserError);
+}
+
+TEST_CASE("AnchorKV: one LayerKV per block, token-aligned [B, L, width], values zero at init", "[anchorkv]") {
+  auto o = backbone_options();
+  auto bb = frozen_backbone(o, 1);
+  auto c = adapter_config("anchorkv");
+  auto a = make_anchor_adapter(c, bb, 4);
+  auto x = make_inputs(c, o, 3, 7, 4);
+  auto h = a->hooks(x.in);
+  REQUIRE(h.extra_kv.size() == static_cast<size_t>(o.depth));
+  CHECK(h.block_residuals.empty());
+  for (auto& kv : h.extra_kv) {
+    CHECK(kv.k.sizes().vec() == std::vector<int64_t>{3, 7, 32});
+    CHECK(kv.v.sizes().vec() == std::vector<int64_t>{3, 7, 32});
+    CHECK(torch::equal(kv.mask, x.in.valid));
+    CHECK(kv.v.abs().max().item<float>() == 0.0f);  // U^V starts at zero
+    CHECK(kv.k.abs().max().item<float>() > 0.0f);
+  }
+  // The memory is token-aligned: H^s has L slots for L * stride frames.
+  auto Hs = a->scaffold(x.in.features, x.in.text);
+  CHECK(Hs.sizes().vec() == std::vector<int64_t>{3, 7, 32});
+  auto out = bb->forward(x.in.ids, x.in.t, x.in.text, x.in.valid, &h);
+  CHECK(torch::isfinite(out.logits).all().item<bool>());
+  // Without dual context the memory ignores the text.
+  auto c2 = c;
+  c2.dual_context = false;
+  auto a2 = make_anchor_adapter(c2, bb, 4);
+  auto t2 = x.in;
+  t2.text = random_text(3, 5, o.text_dim);
+  CHECK(torch::equal(a2->scaffold(x.in.features, x.in.text), a2->scaffold(t2.features, t2.text)));
+}
+
+TEST_CASE("zero-init baselines leave the frozen backbone's logits unchanged", "[anchorkv]") {
+  auto o = backbone_options();
+  auto bb = frozen_backbone(o, 2);
+  for (std::string type : {"cross_attention", "controlnet"}) {
+    auto c = adapter_config(type);
+    auto a = make_anchor_adapter(c, bb, 4);
+    a->eval();
+    auto x = make_inputs(c, o, 3, 6, 4);
+    auto h = a->hooks(x.in);
+    REQUIRE(h.block_residuals.size() == static_cast<size_t>(o.depth));
+    auto base = bb->forward(x.in.ids, x.in.t, x.in.text, x.in.valid).logits;
+    auto with = bb->forward(x.in.ids, x.in.t, x.in.text, x.in.valid, &h).logits;
+    CHECK(torch::equal(base, with));
+  }
+  // The ControlNet copy starts as the frozen blocks.
+  auto cn = std::dynamic_pointer_cast<ControlNetAdapterImpl>(make_anchor_adapter(adapter_config("controlnet"), bb, 4));
+  REQUIRE(cn);
+  auto src = bb->blocks[1]->named_parameters();
+  for (auto& p : cn->blocks[1]->named_parameters()) CHECK(torch::equal(p.value(), src[p.key()]));
+}
+
+TEST_CASE("trainable parameter counts: AnchorKV is far smaller than ControlNet and cross-attention", "[anchorkv]") {
+  auto o = backbone_options();
+  o.depth = 6;
+  o.width = 128;
+  o.heads = 4;
+  auto bb = frozen_backbone(o, 3);
+  auto kv = make_anchor_adapter(adapter_config("anchorkv"), bb, 4);
+  auto ca = make_anchor_adapter(adapter_config("cross_attention"), bb, 4);
+  auto cn = make_anchor_adapter(adapter_config("controlnet"), bb, 4);
+  int64_t n_kv = count_parameters(*kv), n_ca = count_parameters(*ca), n_cn = count_parameters(*cn);
+  CHECK(n_kv * 3 < n_cn);
+  CHECK(n_kv * 3 < n_ca);
+  CHECK(count_parameters(*bb) == 0);  // frozen: none counted as trainable
+  // The low-rank projections: r (d_s + 2 d) per block.
+  auto c = adapter_config("anchorkv");
+  auto c8 = c;
+  c8.rank = 8;
+  auto kv8 = make_anchor_adapter(c8, bb, 4);
+  CHECK(count_parameters(*kv8) - count_parameters(*kv) == 6 * 4 * (128 + 2 * 128));
+}
+
+TEST_CASE("eq. (16) steps move only adapter weights; backbone and decoder stay bit-identical", "[anchorkv]") {
+  auto o = backbone_options();
+  auto bb = frozen_backbone(o, 4);
+  torch::manual_seed(9);
+  VqTokenizerOptions vo;
+  vo.conv.in_dim = 22 * 3;
+  vo.conv.width = 16;
+  vo.conv.latent = 8;
+  vo.conv.down_stages = 2;
+  vo.conv.res_depth = 1;
+  vo.quant.codebook_size = 16;
+  vo.quant.code_dim = 8;
+  VqTokenizer vq(vo);
+  vq->eval();
+  for (auto& p : vq->parameters()) p.set_requires_grad(false);
+  std::vector<torch::Tensor> frozen_before;
+  for (auto& p : bb->parameters()) frozen_before.push_back(p.clone());
+  for (auto& p : vq->parameters()) frozen_before.push_back(p.clone());
+  for (std::string type : {"anchorkv", "cross_attention", "controlnet"}) {
+    auto c = adapter_config(type);
+    auto a = make_anchor_adapter(c, bb, 4);
+    std::vector<torch::Tensor> params = a->parameters();
+    std::vector<torch::Tensor> before;
+    for (auto& p : params) before.push_back(p.clone());
+    torch::optim::AdamW opt(params, torch::optim::AdamWOptions(1e-2));
+    auto x = make_inputs(c, o, 3, 6, 4);
+    auto motion = toy_motion(24);
+    std::mt19937_64 rng(2);
+    std::vector<AnchorSet> sets;
+    for (int b = 0; b < 3; ++b) sets.push_back(draw_anchor_set(AnchorFamily::root_3d, 4, motion.data(), 24, 22, rng));
+    auto gt = torch::from_blob(motion.data(), {1, 24, 22, 3}, torch::kFloat32).expand({3, 24, 22, 3}).clone();
+    for (int step = 0; step < 3; ++step) {
+      auto h = a->hooks(x.in);
+      auto logits = bb->forward(x.in.ids, x.in.t, x.in.text, x.in.valid, &h).logits;
+      auto ce = torch::nn::functional::cross_entropy(logits.reshape({-1, 16}), x.in.ids.reshape({-1}));
+      auto world = vq->denormalize(vq->soft_decode(torch::softmax(logits, -1)).view({3, 24, 22, 3}));
+      auto support = make_support_batch(sets, 2, gt);
+      auto loss = ce + 0.3 * anchor_loss(world, support).sum() / support.valid.sum();
+      opt.zero_grad();
+      loss.backward();
+      opt.step();
+    }
+    bool moved = false;
+    for (size_t i = 0; i < params.size(); ++i) moved |= !torch::equal(params[i], before[i]);
+    CHECK(moved);
+    size_t k = 0;
+    for (auto& p : bb->parameters()) CHECK(torch::equal(p, frozen_before[k++]));
+    for (auto& p : vq->parameters()) CHECK(torch::equal(p, frozen_before[k++]));
+  }
+}
