@@ -23,9 +23,10 @@ struct ProjflowBenchOptions {
   int steps = 99;
   int keyframe_every = 5;     // hard keyframes on all joints every N frames
   std::vector<int> dense_frames = {12, 24, 49};
+  int dno_steps = 5;          // DNO optimisation steps timed (0 = skip); reported per step and at 500
 };
-// Unconstrained vs ProjFlow sampling time (with and without pseudo-observations)
-// and structured vs dense projection solves; prints a report to `out`.
+// Unconstrained vs ProjFlow sampling time (with and without pseudo-observations),
+// DNO time per sample, and structured vs dense projection solves; prints a report to `out`.
 void bench_projflow(const ProjflowBenchOptions& o, std::ostream& out);
 
 }  // namespace mc

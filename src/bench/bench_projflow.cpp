@@ -9,6 +9,7 @@
 #include "control/projection_solver.h"
 #include "core/error.h"
 #include "data/skeleton.h"
+#include "samplers/dno.h"
 #include "samplers/projflow.h"
 #include "samplers/task_observation.h"
 
@@ -103,6 +104,22 @@ void bench_projflow(const ProjflowBenchOptions& o, std::ostream& out) {
                        "max hard residual {:.1e} m\n",
                        pseudo ? " + pseudo-observations" : "                     ", s, s / o.samples, s / plain,
                        stepper.projection_seconds(), worst);
+  }
+
+  // DNO on the same prior and tasks: a few optimisation steps, extrapolated to the paper's count.
+  if (o.dno_steps > 0) {
+    DnoConfig dc;
+    dc.opt_steps = o.dno_steps;
+    dc.warmup = std::min(dc.warmup, std::max(1, o.dno_steps / 2));
+    dc.batch_size = o.samples;
+    t0 = Clock::now();
+    DnoResult r = dno_generate(prior, captions, lengths, obs, dc, 1);
+    const double s = seconds_since(t0);
+    const double per_step = s / o.samples / o.dno_steps;
+    out << fmt::format("  DNO ({} ODE steps, {} optimisation steps): {:8.2f} s  ({:.3f} s/sample/step; {:.1f} s/sample "
+                       "at 500 steps); mean residual {:.3f} -> {:.3f} m\n",
+                       dc.ode_steps, o.dno_steps, s, per_step, per_step * 500, r.initial_residual.mean().item<double>(),
+                       r.final_residual.mean().item<double>());
   }
 
   // Structured vs dense solve of a full observation (every joint, axis and frame).

@@ -40,6 +40,7 @@ void add_bench_command(CLI::App& app) {
   pf->add_option("--keyframe-every", po->keyframe_every, "hard keyframes on all joints every N frames")
       ->check(CLI::Range(1, 1000));
   pf->add_option("--dense-frames", po->dense_frames, "clip lengths of the dense-vs-structured solver comparison");
+  pf->add_option("--dno-steps", po->dno_steps, "DNO optimisation steps to time (0 = skip)")->check(CLI::Range(0, 10000));
   pf->add_option("--threads", *pthreads, "torch threads (0 = all cores)")->check(CLI::NonNegativeNumber);
   pf->callback([po, pthreads] {
     torch::set_num_threads(*pthreads > 0 ? *pthreads : static_cast<int>(std::max(1u, std::thread::hardware_concurrency())));
