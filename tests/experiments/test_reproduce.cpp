@@ -50,6 +50,13 @@ std::string write_profile(const fs::path& dir) {
     << "    - \"generator.prior.overrides=[optim.steps=20, optim.warmup=2, optim.batch_size=8, data.path=" << fx
     << ", run.root=" << runs << ", run.threads=1]\"\n"
     << "    - generator.sampler.steps=6\n"
+    << "    - generator.opt_steps=2\n"
+    << "    - generator.ode_steps=2\n"
+    << "    - generator.steps=6\n"
+    // the ControlNet trains briefly on top of the same briefly trained prior (same overrides = same run)
+    << "    - \"generator.controlnet.overrides=[optim.steps=4, optim.warmup=1, optim.batch_size=4, data.path=" << fx
+    << ", run.root=" << runs << ", run.threads=1, 'model.base.overrides=[optim.steps=20, optim.warmup=2, "
+    << "optim.batch_size=8, data.path=" << fx << ", run.root=" << runs << ", run.threads=1]']\"\n"
     << "  runs_root: " << runs << "\n  results_root: " << (dir / "results").string() << "\n"
     << "protocol: {r_precision_pool: 4, diversity_pairs: 4, multimodality_pairs: 2, foot_skating_padded_196: false, "
        "control_thresholds: [0.5, 0.2]}\n";
