@@ -25,6 +25,7 @@ struct ProfileConfig : Config {
   int threads = 0;
   std::string device = "cpu";
   std::vector<std::string> substitutions;  // path=value applied to generator/protocol files where path exists
+  std::vector<std::string> trained_configs;  // from=to: training configs swapped for this profile
   std::string runs_root = "runs/experiments";
   std::string results_root = "results";
   void visit(FieldVisitor& v) override {
@@ -40,6 +41,9 @@ struct ProfileConfig : Config {
     v("device", device, "torch device: cpu, cuda, cuda:N");
     v("substitutions", substitutions,
       "path=value overrides applied to every generator and protocol file that has `path` (model sizes, steps)");
+    v("trained_configs", trained_configs,
+      "from=to training-config swaps for every trained component, also inside other training configs "
+      "(e.g. configs/prior/flow_tiny.yaml=configs/prior/flow_standard.yaml)");
     v("runs_root", runs_root, "where row runs and trained components live");
     v("results_root", results_root, "results/<profile>/ goes here");
   }
@@ -64,6 +68,8 @@ struct TableConfig : Config {
   std::vector<std::string> protocol_overrides;
   std::vector<std::string> columns;  // metric keys; key@group-filter restricts to tasks whose group contains it
   int num_samples = 0;        // 0 = the profile's
+  int multimodality_texts = 0;        // > 0: T2M's separate multimodality pass over this many texts
+  int multimodality_generations = 10;  // generations per text in that pass
   void visit(FieldVisitor& v) override {
     v("id", id, "table id, e.g. projflow/table1");
     v("title", title, "caption");
@@ -72,6 +78,10 @@ struct TableConfig : Config {
     v("protocol_overrides", protocol_overrides, "path=value overrides of the protocol file");
     v("columns", columns, "metric keys shown (metric@filter: over tasks whose group contains filter)");
     v("num_samples", num_samples, "tasks per row (0 = the profile's)", at_least(0));
+    v("multimodality_texts", multimodality_texts,
+      "texts of the separate multimodality pass (T2M: 100 texts x 30 generations; 0 = no pass)", at_least(0));
+    v("multimodality_generations", multimodality_generations, "generations per text in the multimodality pass",
+      at_least(2));
   }
   std::string validate() const override {
     if (id.empty()) return "table.id is empty";

@@ -86,6 +86,7 @@ std::string PaperTable::column_name(const std::string& key) const {
 static int decimals_for(double v) {
   double a = std::fabs(v);
   if (a == 0) return 3;
+  if (a >= 1000) return 0;
   if (a >= 100) return 1;
   if (a >= 10) return 2;
   if (a >= 0.1) return 3;

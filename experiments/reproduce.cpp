@@ -63,6 +63,7 @@ ReproduceResult reproduce(const ReproduceOptions& opt) {
     fail("profile '{}' not found ({} does not exist); profiles are the files in configs/profile/", opt.profile,
          profile_file);
   ProfileFile pf = load_job<ProfileFile>(profile_file, opt.profile_overrides);
+  set_config_redirects(pf.profile.trained_configs, profile_file + ": profile.trained_configs");
 
   // Load and check every selected spec before anything runs: a typo fails in seconds.
   std::vector<TableSpec> specs;
@@ -114,6 +115,17 @@ ReproduceResult reproduce(const ReproduceOptions& opt) {
       }
     }
     tr.spec.rows = kept;
+    // Table VII's cost column: time per sample relative to the table's first row.
+    const auto& cols = spec.table.columns;
+    if (std::find(cols.begin(), cols.end(), "relative_cost") != cols.end() && !tr.rows.empty() &&
+        tr.rows.front().values.count("time_per_sample")) {
+      const double base = summarize(tr.rows.front().values.at("time_per_sample")).mean;
+      for (auto& r : tr.rows) {
+        auto& rc = r.values["relative_cost"];
+        rc.clear();
+        for (double t : r.values["time_per_sample"]) rc.push_back(t / std::max(base, 1e-12));
+      }
+    }
     tr.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - ts).count();
     RenderedTable rt = render_table(tr);
     fs::path base = out_dir / spec.table.id;

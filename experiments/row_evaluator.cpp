@@ -2,6 +2,7 @@
 #include "experiments/row_evaluator.h"
 
 #include <filesystem>
+#include <random>
 
 #include "core/error.h"
 #include "data/fixture/fixture_build.h"
@@ -45,6 +46,17 @@ std::map<std::string, double> RowEvaluator::t2m(const MotionSet& generated, cons
   for (size_t i = 0; i < generated.size(); ++i) e.captions.push_back(generated.captions[i].at(0));
   e.text = evaluator_->embed_texts(e.captions);
   return t2m_metrics(e, p, seed);
+}
+
+double RowEvaluator::multimodality(const MotionSet& generated, int texts, int per_text, int pairs,
+                                   uint64_t seed) const {
+  if (static_cast<size_t>(texts) * per_text != generated.size())
+    fail("multimodality: {} motions are not {} texts x {} generations", generated.size(), texts, per_text);
+  Embeddings all = evaluator_->embed_motions(generated, "multimodality generations");
+  std::vector<Embeddings> groups;
+  for (int i = 0; i < texts; ++i) groups.push_back(all.middleRows(static_cast<Eigen::Index>(i) * per_text, per_text));
+  std::mt19937_64 rng(seed);
+  return mc::multimodality(groups, std::min(pairs, per_text), rng);
 }
 
 }  // namespace mc

@@ -23,6 +23,9 @@ class RowEvaluator {
   std::vector<ControlTask> tasks(const ControlProtocol& protocol, int n, uint64_t seed) const;
   // One replication of the evaluator metrics of `generated` against the split.
   std::map<std::string, double> t2m(const MotionSet& generated, const EvalProtocol& p, uint64_t seed) const;
+  // T2M's multimodality of `generated` = `texts` groups of `per_text` consecutive
+  // generations of one text each (`pairs` pairs per group).
+  double multimodality(const MotionSet& generated, int texts, int per_text, int pairs, uint64_t seed) const;
 
   const MotionSet& data() const { return data_; }
   const MotionSet& reference() const { return reference_; }

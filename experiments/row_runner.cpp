@@ -131,7 +131,8 @@ ResolvedRow resolve_row(const ProfileConfig& profile, const TableSpec& table, co
 // The key that decides whether a finished row run can be reused.
 struct RowRunKey : Config {
   std::string generator, protocol, data, evaluator, split;
-  int num_samples = 0, repeats = 0;
+  std::vector<std::string> trained_configs;
+  int num_samples = 0, repeats = 0, mm_texts = 0, mm_generations = 0;
   int64_t seed = 0;
   EvalProtocol eval;
   void visit(FieldVisitor& v) override {
@@ -140,8 +141,11 @@ struct RowRunKey : Config {
     v("data", data, "ground-truth file");
     v("evaluator", evaluator, "evaluator config");
     v("split", split, "split");
+    v("trained_configs", trained_configs, "training-config swaps");
     v("num_samples", num_samples, "tasks");
     v("repeats", repeats, "replications");
+    v("mm_texts", mm_texts, "multimodality texts");
+    v("mm_generations", mm_generations, "multimodality generations per text");
     v("seed", seed, "base seed");
     v("eval", eval, "metric protocol");
   }
@@ -366,8 +370,11 @@ RowResult run_row(const ProfileFile& pf, const TableSpec& table, const RowConfig
   key.data = profile.data;
   key.evaluator = profile.evaluator;
   key.split = profile.split;
+  key.trained_configs = profile.trained_configs;
   key.num_samples = table.table.num_samples > 0 ? table.table.num_samples : profile.num_samples;
   key.repeats = profile.repeats;
+  key.mm_texts = table.table.multimodality_texts;
+  key.mm_generations = table.table.multimodality_texts > 0 ? table.table.multimodality_generations : 0;
   key.seed = profile.seed;
   key.eval = pf.protocol;
   RunConfig rc;
@@ -417,6 +424,22 @@ RowResult run_row(const ProfileFile& pf, const TableSpec& table, const RowConfig
     write_motion_file((run.path() / fmt::format("samples_r{}.h5", r)).string(), m);
     auto metrics = replicate_metrics(ev, m, tasks, pf.protocol, seed);
     metrics["time_per_sample"] = g.seconds / std::max<size_t>(1, tasks.size());
+    metrics["throughput"] = static_cast<double>(tasks.size()) / std::max(g.seconds, 1e-9);
+    for (auto& [k, v] : g.stats) metrics[k] = v;
+    if (key.mm_texts > 0) {
+      // T2M's multimodality pass: the first texts, each generated mm_generations times.
+      const int texts = std::min<int>(key.mm_texts, static_cast<int>(tasks.size()));
+      std::vector<ControlTask> mm;
+      for (int i = 0; i < texts; ++i)
+        for (int k = 0; k < key.mm_generations; ++k) {
+          mm.push_back(tasks[i]);
+          mm.back().id += fmt::format("#mm{}", k);
+        }
+      GeneratedMotions gm = gen->generate(mm, seed + 7);
+      metrics["multimodality"] =
+          ev.multimodality(to_motion_set(gm, mm, ev.data()), texts, key.mm_generations, pf.protocol.multimodality_pairs,
+                           seed + 7);
+    }
     for (auto& [k, v] : metrics) {
       if (!std::isfinite(v)) fail("row '{}': metric {} is not finite in replicate {}", row.id, k, r);
       result.values[k].push_back(v);

@@ -103,10 +103,13 @@ RunDir RunDir::open(const RunConfig& run, const std::string& resolved_yaml, cons
   if (fs::exists(r.dir_) && run.force) fs::remove_all(r.dir_);
   if (fs::exists(cfg_path)) {
     std::string old = read_file(cfg_path);
-    // run.force is not part of the run's identity
+    // run.force and run.threads are not part of the run's identity: a run
+    // trained on one thread is reused by a job that asks for all cores.
     auto strip = [](std::string s) {
       auto p = s.find("force: true");
       if (p != std::string::npos) s.replace(p, 11, "force: false");
+      p = s.find("\n  threads: ");
+      if (p != std::string::npos) s.erase(p + 1, s.find('\n', p + 1) - p);
       return s;
     };
     if (strip(old) != strip(resolved_yaml))

@@ -80,6 +80,8 @@ class AnchorRouteGenerator : public MotionGenerator {
     const double err0 = mean_control_error(r.world, make_anchor_batch(sets)).item<double>();
     out.notes.push_back(describe());
     out.notes.push_back(fmt::format("trainable parameters: {}", adapter_ ? count_parameters(*adapter_) : 0));
+    out.stats["params"] = adapter_ ? static_cast<double>(count_parameters(*adapter_)) : 0.0;
+    out.stats["steps"] = route_.steps;
     out.notes.push_back(fmt::format("generator control error: {:.4f} m", err0));
     if (route_.steps > 0) {
       RouteSolver solver(prior_->tokenizer().model, route_);

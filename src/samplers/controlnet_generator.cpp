@@ -129,6 +129,7 @@ class ControlNetGenerator : public MotionGenerator {
     int64_t n = 0;
     for (auto& p : net_.branch()->parameters()) n += p.numel();
     g.notes.push_back(fmt::format("ControlNet branch parameters: {}", n));
+    g.stats["params"] = static_cast<double>(n);
     return g;
   }
   std::string describe() const override {

@@ -3,6 +3,7 @@
 #pragma once
 #include <cstdint>
 #include <memory>
+#include <map>
 #include <string>
 #include <vector>
 
@@ -18,6 +19,9 @@ struct GeneratedMotions {
   std::vector<int> lengths;  // [N] = the tasks' lengths
   double seconds = 0;        // wall time of generation for all N (excludes loading/training)
   std::vector<std::string> notes;  // e.g. "trainable parameters: 1.2M", shown in run logs
+  // Numbers about the generator that tables report beside the metrics (e.g.
+  // "params": trainable conditioning parameters, "steps": refinement steps).
+  std::map<std::string, double> stats;
 };
 
 struct GeneratorContext {

@@ -4,6 +4,7 @@
 
 #include <algorithm>
 #include <filesystem>
+#include <map>
 
 #include "core/error.h"
 #include "data/fixture/fixture_build.h"
@@ -14,6 +15,30 @@ namespace fs = std::filesystem;
 static std::vector<std::string>& trained_runs_registry() {
   static std::vector<std::string> runs;
   return runs;
+}
+
+static std::map<std::string, std::string>& config_redirects() {
+  static std::map<std::string, std::string> redirects;  // canonical from -> to
+  return redirects;
+}
+
+static std::string canonical_config(const std::string& file) {
+  return fs::weakly_canonical(fs::path(resolve_data_path(file))).string();
+}
+
+void set_config_redirects(const std::vector<std::string>& from_to, const std::string& what) {
+  std::map<std::string, std::string> out;
+  for (const auto& e : from_to) {
+    const auto eq = e.find('=');
+    if (eq == std::string::npos || eq == 0 || eq + 1 == e.size())
+      fail("{}: entry '{}' is not from=to (e.g. configs/prior/flow_tiny.yaml=configs/prior/flow_standard.yaml)",
+           what, e);
+    const std::string from = e.substr(0, eq), to = e.substr(eq + 1);
+    for (const auto& f : {from, to})
+      if (!fs::exists(resolve_data_path(f))) fail("{}: entry '{}': the config '{}' does not exist", what, e, f);
+    out[canonical_config(from)] = to;
+  }
+  config_redirects() = std::move(out);
 }
 
 static std::string stem_of(const std::string& file) { return fs::path(file).stem().string(); }
@@ -28,7 +53,12 @@ static void ensure_training_data(const TrainJobConfig& job) {
   build_fixture(resolve_data_path(job.data.fixture), {fmt::format("output={}", job.data.path)}, false);
 }
 
-TrainResult run_train(const std::string& file, const std::vector<std::string>& overrides, int64_t stop_after) {
+TrainResult run_train(const std::string& requested, const std::vector<std::string>& overrides, int64_t stop_after) {
+  std::string file = requested;
+  if (!config_redirects().empty()) {
+    auto it = config_redirects().find(canonical_config(requested));
+    if (it != config_redirects().end()) file = resolve_data_path(it->second);
+  }
   auto job = load_job<TrainJobConfig>(file, overrides);
   ensure_training_data(job);
   std::string name = fmt::format("{}-{}", stem_of(file), config_hash(job));

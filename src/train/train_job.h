@@ -17,4 +17,11 @@ TrainResult run_train(const std::string& config_file, const std::vector<std::str
 // components each row used.
 std::vector<std::string> take_trained_runs();
 
+// Training configs replaced process-wide, each "from=to" (paths as in configs):
+// run_train(from) trains `to` instead, also where `from` is named inside another
+// training config. The table replay's profiles use it to swap every tiny
+// component for its standard-size counterpart. UserError naming `what` when an
+// entry is malformed or a file is missing. An empty list clears the redirects.
+void set_config_redirects(const std::vector<std::string>& from_to, const std::string& what);
+
 }  // namespace mc
