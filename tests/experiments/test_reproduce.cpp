@@ -4,6 +4,7 @@
 #include <catch2/catch.hpp>
 
 #include <H5Cpp.h>
+#include <yaml-cpp/yaml.h>
 
 #include <fstream>
 #include <map>
@@ -136,4 +137,123 @@ TEST_CASE("motionctl reproduce: reduced smoke replay of the ProjFlow tables", "[
   auto missing = run_motionctl("reproduce --profile nosuchprofile --no-figures");
   CHECK(missing.exit_code == 2);
   CHECK(missing.output.find("nosuchprofile") != std::string::npos);
+}
+
+namespace {
+
+// A repo training config shrunk for the test: a few steps on the test's fixture, its
+// own run root (runs named by config hash), one thread. Nested configs it names are redirected by the profile too.
+std::string shrink_config(const fs::path& dir, const std::string& repo_config, const std::string& name, int steps) {
+  YAML::Node n = YAML::LoadFile((fs::path(MOTIONCTL_SOURCE_DIR) / repo_config).string());
+  n["run"]["root"] = (dir / "runs").string();
+  n["run"]["threads"] = 1;
+  n["run"]["log_every"] = 5;
+  n["run"]["checkpoint_every"] = 10;
+  n["data"]["path"] = (dir / "fx.h5").string();
+  n["data"]["fixture"] = "";
+  n["optim"]["steps"] = steps;
+  n["optim"]["warmup"] = 2;
+  n["optim"]["batch_size"] = 8;
+  const fs::path out = dir / (name + ".yaml");
+  std::ofstream(out) << YAML::Dump(n) << "\n";
+  return repo_config + "=" + out.string();
+}
+
+}  // namespace
+
+TEST_CASE("motionctl reproduce: reduced smoke replay of the AnchorRoute and cross-method tables",
+          "[experiments][slow]") {
+  TempDir dir("reproduce_ar");
+  REQUIRE(run_motionctl(fmt::format("fixture configs/data/smoke.yaml output={} fixture.num_clips=60",
+                                    (dir.path / "fx.h5").string()))
+              .exit_code == 0);
+  write_profile(dir.path);
+  // Every trained component is swapped for a shrunk copy through profile.trained_configs.
+  std::vector<std::string> swaps = {
+      shrink_config(dir.path, "configs/tokenizer/vq_tiny.yaml", "vq", 10),
+      shrink_config(dir.path, "configs/tmd/tmd_tiny.yaml", "tmd", 10),
+      shrink_config(dir.path, "configs/masked/masked_tiny.yaml", "masked", 10),
+      shrink_config(dir.path, "configs/adapter/anchorkv_tiny.yaml", "adapter", 10),
+      shrink_config(dir.path, "configs/prior/flow_tiny.yaml", "flow", 10)};
+  std::ofstream p(dir.path / "ar.yaml");
+  p << "profile:\n  name: ci_ar\n  data: " << (dir.path / "fx.h5").string()
+    << "\n  data_fixture: ''\n  evaluator: " << (dir.path / "evaluator.yaml").string()
+    << "\n  split: test\n  num_samples: 5\n  repeats: 2\n  seed: 1\n  threads: 1\n  device: cpu\n"
+    << "  trained_configs:\n";
+  for (auto& s : swaps) p << "    - \"" << s << "\"\n";
+  p << "  substitutions: [generator.sampler.steps=4]\n"
+    << "  runs_root: " << (dir.path / "runs").string() << "\n  results_root: " << (dir.path / "results").string()
+    << "\nprotocol: {r_precision_pool: 4, diversity_pairs: 4, multimodality_pairs: 2, foot_skating_padded_196: false, "
+       "control_thresholds: [0.5, 0.2]}\n";
+  p.close();
+  auto r = run_motionctl(fmt::format("reproduce --profile {} --tables anchorroute cross --no-figures",
+                                     (dir.path / "ar.yaml").string()));
+  INFO(r.output);
+  REQUIRE(r.exit_code == 0);
+  CHECK(r.output.find("FAILED") == std::string::npos);
+  // The swapped configs were trained (in the test's run root), not the repo's tiny ones.
+  CHECK(fs::exists(dir.path / "runs" / "tmd"));
+  CHECK(fs::exists(dir.path / "runs" / "adapter"));
+  CHECK(fs::exists(dir.path / "runs" / "masked"));
+
+  const fs::path out = dir.path / "results" / "ci_ar";
+  std::map<std::string, std::map<std::string, double>> means;  // table:row -> metric -> mean
+  std::vector<std::string> tables = {"anchorroute/table1", "anchorroute/table2", "anchorroute/table3",
+                                     "anchorroute/table4", "anchorroute/table5", "anchorroute/table6",
+                                     "anchorroute/table7", "cross/benchmark"};
+  for (const auto& t : tables) {
+    for (std::string ext : {".md", ".csv", ".tex"}) {
+      INFO(t << ext);
+      REQUIRE(fs::exists(out / (t + ext)));
+    }
+    std::ifstream csv(out / (t + ".csv"));
+    std::string line;
+    REQUIRE(std::getline(csv, line));
+    const auto header = split(line, ',');
+    while (std::getline(csv, line)) {
+      auto f = split(line, ',');
+      REQUIRE(f.size() == header.size());
+      if (f[3] != "ours") continue;
+      double mean = std::stod(f[5]);
+      CHECK(std::isfinite(mean));
+      means[t + ":" + f[1]][f[4]] = mean;
+    }
+  }
+  // Table I: the multimodality pass ran for the sampled priors; ground truth has none.
+  CHECK(means["anchorroute/table1:tmd"].count("multimodality"));
+  CHECK(means["anchorroute/table1:tmd"]["multimodality"] > 0);
+  CHECK(means["anchorroute/table1:gt"]["multimodality"] == Approx(0).margin(1e-3));  // float noise of the embedding only
+  // Table IV: parameter counts come from the trained adapters; AnchorKV is the smallest path.
+  const double kv = means["anchorroute/table4:anchorkv"]["params"];
+  CHECK(kv > 0);
+  CHECK(means["anchorroute/table4:controlnet_adapter"]["params"] > kv);
+  CHECK(means["anchorroute/table4:anchorkv/no_dual_context_no_anchor_loss"]["params"] < kv);
+  // Table VII: refinement steps as configured, cost relative to the generator alone.
+  CHECK(means["anchorroute/table7:rs0"]["relative_cost"] == Approx(1.0));
+  CHECK(means["anchorroute/table7:rs500"]["steps"] == Approx(500));
+  CHECK(means["anchorroute/table7:rs500"]["relative_cost"] > 1.0);
+  // Cross benchmark: ProjFlow meets every anchor exactly; the RouteSolver reduces AnchorKV's error.
+  for (std::string fam : {"root3d", "planar", "body"}) {
+    INFO(fam);
+    CHECK(means["cross/benchmark:" + fam + "/projflow"]["control_error"] <= 1e-4);
+  }
+  CHECK(means["cross/benchmark:root3d/anchorroute"]["control_error"] <
+        means["cross/benchmark:root3d/anchorkv"]["control_error"]);
+}
+
+TEST_CASE("profile.trained_configs: malformed entries and missing files are exit 2 naming the entry",
+          "[experiments]") {
+  TempDir dir("reproduce_bad");
+  std::ofstream p(dir.path / "bad.yaml");
+  p << "profile:\n  name: bad\n  trained_configs: [configs/prior/flow_tiny.yaml=configs/prior/nosuch.yaml]\n";
+  p.close();
+  auto r = run_motionctl(fmt::format("reproduce --profile {} --no-figures", (dir.path / "bad.yaml").string()));
+  CHECK(r.exit_code == 2);
+  CHECK(r.output.find("nosuch.yaml") != std::string::npos);
+  std::ofstream q(dir.path / "bad2.yaml");
+  q << "profile:\n  name: bad\n  trained_configs: [configs/prior/flow_tiny.yaml]\n";
+  q.close();
+  auto r2 = run_motionctl(fmt::format("reproduce --profile {} --no-figures", (dir.path / "bad2.yaml").string()));
+  CHECK(r2.exit_code == 2);
+  CHECK(r2.output.find("from=to") != std::string::npos);
 }
