@@ -19,9 +19,11 @@ ControlTargets control_targets(const FlowPrior& base, const std::vector<ControlT
   for (const auto& t : tasks)
     for (size_t i = 0; i < t.spec.items.size(); ++i) {
       const std::string& ty = t.spec.items[i].type;
-      if (ty != "keyframe" && ty != "trajectory")
+      // upper_body_edit fixes the lower body's joint positions: joint positions too.
+      if (ty != "keyframe" && ty != "trajectory" && ty != "upper_body_edit")
         fail("task '{}': {} is a '{}' constraint; the ControlNet baseline only takes joint positions "
-             "(keyframe or trajectory items selecting joint x/y/z), use ProjFlow or DNO for this task",
+             "(keyframe, trajectory or upper_body_edit items selecting joint x/y/z), use ProjFlow or DNO for "
+             "this task",
              t.id, t.spec.item_label(static_cast<int>(i)), ty);
     }
   auto obs = model_observations(base, tasks);

@@ -259,6 +259,12 @@ TEST_CASE("ControlNet control targets: keyframe/trajectory selections only", "[c
   CHECK(e.find("task 'cam'") != std::string::npos);
   CHECK(e.find("item 1 'side view' (camera_2d)") != std::string::npos);
   CHECK(e.find("only takes joint positions") != std::string::npos);
+
+  // Upper-body editing fixes the lower body's joint positions: the ControlNet takes it.
+  std::vector<ControlTask> edit = {make_task("edit", 10, "- {type: upper_body_edit}\n", 4)};
+  ControlTargets et = control_targets(base, edit, 10);
+  CHECK(et.mask[0].narrow(1, 10, 1).sum().item<double>() == 30);  // l_foot: every frame, x/y/z
+  CHECK(et.mask[0].narrow(1, 15, 1).sum().item<double>() == 0);   // the head is free
 }
 
 TEST_CASE("ControlNet end to end: flow_tiny base on demand, train, sample through the generator",
