@@ -301,7 +301,16 @@ static void copy_examples(const fs::path& file, H5::Group& dst) {
     H5::DataType type = ds.getDataType();
     std::vector<char> buf(ds.getStorageSize() > 0 ? ds.getInMemDataSize() : 0);
     if (!buf.empty()) ds.read(buf.data(), type);
-    H5::DataSet out = dst.createDataSet(name, type, space);
+    // Deflated: padded frames and masks are mostly zeros, and results.h5 is committed.
+    H5::DSetCreatPropList props;
+    const int rank = space.getSimpleExtentNdims();
+    if (rank >= 1 && space.getSimpleExtentNpoints() > 0) {
+      std::vector<hsize_t> dims(rank);
+      space.getSimpleExtentDims(dims.data());
+      props.setChunk(rank, dims.data());
+      props.setDeflate(6);
+    }
+    H5::DataSet out = dst.createDataSet(name, type, space, props);
     if (!buf.empty()) out.write(buf.data(), type);
   }
   for (int i = 0; i < f.getNumAttrs(); ++i) {
