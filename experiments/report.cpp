@@ -585,7 +585,7 @@ std::string render_summary(const std::vector<ClaimCheck>& claims, const std::vec
   for (auto& c : claims) s += fmt::format("| {} | {} | **{}** | {} |\n", c.text, c.table, c.verdict, c.evidence);
   s += "\n## Tables\n\n";
   for (auto& t : tables)
-    s += fmt::format("- [{}]({}.md): {} ({} rows, {:.0f} s)\n", t.spec.table.id, h5_name(t.spec.table.id),
+    s += fmt::format("- [{}]({}.md): {} ({} rows, {:.0f} s)\n", t.spec.table.id, t.spec.table.id,
                      t.spec.table.title, t.rows.size(), t.seconds);
   return s;
 }
