@@ -134,6 +134,7 @@ struct RowResult {
 };
 
 inline constexpr size_t kExamplesPerRow = 4;  // samples per row kept for figures (examples.h5)
+inline constexpr unsigned long long kExamplesInResults = 2;  // of those, copied into results.h5
 
 class RowEvaluator;  // evaluator + reference embeddings, shared across rows
 

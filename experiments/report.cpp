@@ -291,26 +291,40 @@ static std::string h5_name(std::string s) {
   return s;
 }
 
-// Copies every dataset and attribute of a row's examples.h5 into `dst`.
-static void copy_examples(const fs::path& file, H5::Group& dst) {
+// Copies the first `keep` samples of a row's examples.h5 (every dataset is indexed by
+// sample along dim 0; the captions and task_ids attributes list one sample per line)
+// into `dst`. The figures draw the first sample or two, and results.h5 is committed when
+// it stays under 20 MB, so it keeps fewer samples than the row directory does.
+static void copy_examples(const fs::path& file, H5::Group& dst, hsize_t keep) {
   H5::H5File f(file.string(), H5F_ACC_RDONLY);
   for (hsize_t i = 0; i < f.getNumObjs(); ++i) {
     std::string name = f.getObjnameByIdx(i);
     H5::DataSet ds = f.openDataSet(name);
     H5::DataSpace space = ds.getSpace();
     H5::DataType type = ds.getDataType();
-    std::vector<char> buf(ds.getStorageSize() > 0 ? ds.getInMemDataSize() : 0);
-    if (!buf.empty()) ds.read(buf.data(), type);
-    // Deflated: padded frames and masks are mostly zeros, and results.h5 is committed.
-    H5::DSetCreatPropList props;
     const int rank = space.getSimpleExtentNdims();
-    if (rank >= 1 && space.getSimpleExtentNpoints() > 0) {
-      std::vector<hsize_t> dims(rank);
-      space.getSimpleExtentDims(dims.data());
+    std::vector<hsize_t> dims(std::max(rank, 1), 1);
+    if (rank >= 1) space.getSimpleExtentDims(dims.data());
+    if (rank >= 1 && dims[0] > keep) {
+      std::vector<hsize_t> start(rank, 0), count(dims);
+      count[0] = keep;
+      space.selectHyperslab(H5S_SELECT_SET, count.data(), start.data());
+      dims[0] = keep;
+    }
+    H5::DataSpace out_space = rank >= 1 ? H5::DataSpace(rank, dims.data()) : H5::DataSpace(H5S_SCALAR);
+    const size_t elem = type.getSize();
+    size_t n = 1;
+    for (int d = 0; d < rank; ++d) n *= dims[d];
+    std::vector<char> buf(ds.getStorageSize() > 0 ? n * elem : 0);
+    if (!buf.empty()) ds.read(buf.data(), type, out_space, space);
+    // Deflated: padded frames and masks are mostly zeros.
+    H5::DSetCreatPropList props;
+    if (rank >= 1 && n > 0) {
       props.setChunk(rank, dims.data());
+      props.setShuffle();
       props.setDeflate(6);
     }
-    H5::DataSet out = dst.createDataSet(name, type, space, props);
+    H5::DataSet out = dst.createDataSet(name, type, out_space, props);
     if (!buf.empty()) out.write(buf.data(), type);
   }
   for (int i = 0; i < f.getNumAttrs(); ++i) {
@@ -318,6 +332,14 @@ static void copy_examples(const fs::path& file, H5::Group& dst) {
     H5::StrType st = a.getStrType();
     std::string v;
     a.read(st, v);
+    if (a.getName() == "captions" || a.getName() == "task_ids") {
+      size_t cut = std::string::npos;
+      for (hsize_t k = 0; k < keep; ++k) {  // the keep-th line break ends the kept lines
+        cut = v.find('\n', k == 0 ? 0 : cut + 1);
+        if (cut == std::string::npos) break;
+      }
+      if (cut != std::string::npos) v.resize(cut);
+    }
     write_string_attr(dst, a.getName().c_str(), v);
   }
 }
@@ -417,7 +439,7 @@ void write_results_h5(const std::string& path, const std::vector<TableResult>& t
         }
         H5::Group rg = tg2.createGroup(h5_name(r.row_id));
         try {
-          copy_examples(ex, rg);
+          copy_examples(ex, rg, kExamplesInResults);
         } catch (const H5::Exception& e) {
           fail("{}: cannot copy the row's examples ({}); delete the row's run directory to recompute it", ex.string(),
                e.getDetailMsg());

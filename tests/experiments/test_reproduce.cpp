@@ -6,10 +6,12 @@
 #include <H5Cpp.h>
 #include <yaml-cpp/yaml.h>
 
+#include <algorithm>
 #include <fstream>
 #include <map>
 #include <sstream>
 
+#include "experiments/experiment.h"
 #include "test_util.h"
 
 using namespace mc::test;
@@ -122,6 +124,17 @@ TEST_CASE("motionctl reproduce: reduced smoke replay of the ProjFlow tables", "[
     CHECK(f.nameExists("examples"));
     CHECK(f.nameExists("skeleton"));
     CHECK(f.openGroup("training").getNumObjs() >= 2);  // the evaluator and the prior
+    // Each row keeps kExamplesPerRow samples; results.h5 copies the first kExamplesInResults,
+    // and their captions, line for line.
+    REQUIRE(f.nameExists("examples/projflow|table3/projflow"));
+    H5::Group ex = f.openGroup("examples/projflow|table3/projflow");
+    hsize_t dims[4];
+    ex.openDataSet("joints").getSpace().getSimpleExtentDims(dims);
+    CHECK(dims[0] == mc::kExamplesInResults);
+    CHECK(dims[1] > 0);
+    std::string caps;
+    ex.openAttribute("captions").read(ex.openAttribute("captions").getStrType(), caps);
+    CHECK(static_cast<unsigned long long>(std::count(caps.begin(), caps.end(), '\n')) == mc::kExamplesInResults - 1);
   }
 
   // A second run reuses every finished row.
