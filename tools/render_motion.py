@@ -130,8 +130,8 @@ def draw_pose(ax, horiz, height, depth, parents, colors, lw=2.2, zorder=2, alpha
     """One pose (arrays [J]) as bones, far bones first so the near side is drawn on top."""
     bones = [c for c in range(len(parents)) if parents[c] >= 0]
     bones.sort(key=lambda c: depth[c] + depth[parents[c]])
-    # One collection per pose (drawn in list order, so far bones stay underneath): a
-    # Line2D per bone made the figure strips of `motionctl reproduce` take half a minute.
+    # One collection per pose, drawn in list order so far bones stay underneath: a Line2D
+    # per bone (~20k artists over a replay's strips) was the figures' main drawing cost.
     segments = [[(horiz[parents[c]], height[parents[c]]), (horiz[c], height[c])] for c in bones]
     ax.add_collection(LineCollection(segments, colors=[colors[c] for c in bones], linewidths=lw,
                                      capstyle="round", zorder=zorder, alpha=alpha))

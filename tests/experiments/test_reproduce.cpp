@@ -118,6 +118,7 @@ TEST_CASE("motionctl reproduce: reduced smoke replay of the ProjFlow tables", "[
   REQUIRE(fs::exists(out / "summary.md"));
   std::string summary = slurp(out / "summary.md");
   CHECK(summary.find("ProjFlow satisfies every joint's constraints exactly") != std::string::npos);
+  CHECK(summary.find("](projflow/table1.md)") != std::string::npos);  // links resolve beside summary.md
   {
     H5::H5File f((out / "results.h5").string(), H5F_ACC_RDONLY);
     CHECK(f.nameExists("tables"));

@@ -231,7 +231,7 @@ TEST_CASE("ControlNet trainer: base frozen, branch learns, losses finite", "[con
   CHECK(std::isfinite(ev["val_ctrl"]));
 }
 
-TEST_CASE("ControlNet control targets: keyframe/trajectory selections only", "[controlnet]") {
+TEST_CASE("ControlNet control targets: joint-position selections only (keyframe, trajectory, upper-body edit)", "[controlnet]") {
   TempDir dir("cn_targets");
   write_random_prior_run(dir.path);
   FlowPrior base = FlowPrior::load(dir.path.string());
