@@ -2,6 +2,7 @@
 #pragma once
 #include <cstdint>
 #include <ostream>
+#include <string>
 #include <vector>
 
 namespace mc {
@@ -28,5 +29,16 @@ struct ProjflowBenchOptions {
 // Unconstrained vs ProjFlow sampling time (with and without pseudo-observations),
 // DNO time per sample, and structured vs dense projection solves; prints a report to `out`.
 void bench_projflow(const ProjflowBenchOptions& o, std::ostream& out);
+
+struct TrainBenchOptions {
+  std::string config;                  // any training config
+  std::vector<std::string> overrides;  // key=value overrides of it
+  int steps = 5;                       // timed steps
+  int warmup = 2;                      // untimed steps first (allocator, threads)
+  int threads = 0;                     // run.threads override (0 = the config's)
+  bool compare_padded = true;          // also time the step padded to t_max without buckets
+};
+// One training step's time, FLOPs and FLOP rate against sgemm; prints a table to `out`.
+void bench_train(const TrainBenchOptions& o, std::ostream& out);
 
 }  // namespace mc

@@ -47,6 +47,17 @@ void add_bench_command(CLI::App& app) {
     bench_projflow(*po, std::cout);
   });
 
+  auto* tr = cmd->add_subcommand("train", "one training step: time, FLOPs, FLOP rate as a fraction of sgemm's; "
+                                          "whole-clip configs also padded to t_max (the cost of padding)");
+  auto to = std::make_shared<TrainBenchOptions>();
+  tr->add_option("config", to->config, "training config, e.g. configs/prior/flow_standard.yaml")->required();
+  tr->add_option("overrides", to->overrides, "key=value overrides of the config");
+  tr->add_option("--steps", to->steps, "timed steps")->check(CLI::Range(1, 100000));
+  tr->add_option("--warmup", to->warmup, "untimed steps first")->check(CLI::Range(0, 100000));
+  tr->add_option("--threads", to->threads, "torch threads (0 = the config's run.threads)")->check(CLI::NonNegativeNumber);
+  tr->add_flag("!--no-padded", to->compare_padded, "skip the padded comparison");
+  tr->callback([to] { bench_train(*to, std::cout); });
+
   auto* ev = cmd->add_subcommand("eval", "time to evaluate N motions (embedding + every metric, one replication)");
   struct EvalArgs {
     std::string evaluator = "configs/eval/evaluator_smoke.yaml";

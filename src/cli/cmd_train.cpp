@@ -10,6 +10,7 @@
 #include "core/atomic_file.h"
 #include "core/error.h"
 #include "data/skeleton.h"
+#include "train/pretrained.h"
 #include "train/trainer.h"
 
 namespace mc {
@@ -32,6 +33,29 @@ void add_train_command(CLI::App& app) {
     TrainResult r = run_train(a->file, a->overrides, a->stop_after);
     std::cout << "run: " << r.run_dir.string() << (r.skipped ? " (already finished)" : "") << "\n";
     for (auto& [k, v] : r.summary) std::cout << fmt::format("  {} = {:.6g}\n", k, v);
+  });
+}
+
+void add_ship_command(CLI::App& app) {
+  auto* cmd = app.add_subcommand(
+      "ship", "copy the finished run of a training config into pretrained/ and record it in its manifest");
+  struct Args {
+    std::string file;
+    std::vector<std::string> overrides;
+    std::string root;
+  };
+  auto a = std::make_shared<Args>();
+  cmd->add_option("config", a->file, "training config whose finished run to ship, e.g. configs/prior/flow_standard.yaml")
+      ->required();
+  cmd->add_option("overrides", a->overrides, "the key=value overrides it was trained with");
+  cmd->add_option("--to", a->root, "shipped folder (default: pretrained/ in the source tree)");
+  cmd->callback([a] {
+    fs::path run = run_dir_of(a->file, a->overrides);
+    std::string retrain = "motionctl train " + a->file;
+    for (auto& o : a->overrides) retrain += " " + o;
+    retrain += " run.force=true";
+    PretrainedEntry e = ship_run(run, a->root.empty() ? pretrained_root() : fs::path(a->root), a->file, retrain);
+    std::cout << fmt::format("shipped {} as {} (final.pt sha1 {})\n", run.string(), e.dir.string(), e.sha1);
   });
 }
 

@@ -19,6 +19,7 @@ int main(int argc, char** argv) {
   mc::add_reproduce_command(app);
   mc::add_generate_command(app);
   mc::add_sweep_command(app);
+  mc::add_ship_command(app);
   mc::add_config_command(app);
   mc::add_bench_command(app);
   mc::add_sample_command(app);

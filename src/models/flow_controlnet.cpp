@@ -212,7 +212,7 @@ class FlowControlNetTrainer : public Trainable {
   nn::Module& module() override { return *net_.branch(); }
 
   LossOutput loss(const std::vector<int64_t>& idx) override {
-    MotionBatch b = ctx_.data->batch(idx, ctx_.window, 1, ctx_.device);
+    MotionBatch b = ctx_.data->batch(idx, ctx_.window, 1, ctx_.device, ctx_.trim_padding);
     const MotionSet& set = ctx_.data->set();
     std::vector<std::string> caps;
     for (int64_t i : idx) {

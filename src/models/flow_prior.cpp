@@ -22,6 +22,8 @@ std::string FlowPriorConfig::validate() const {
   if (text_width % text_heads != 0)
     return fmt::format("text_width {} is not a multiple of text_heads {}", text_width, text_heads);
   if (eval_t.empty()) return "eval_t needs at least one flow time";
+  if (prediction == "velocity" && loss == "clean")
+    return "loss: clean needs prediction: clean (a velocity network's clean error is its velocity error times 1 - t)";
   return "";
 }
 
@@ -93,6 +95,21 @@ FlowPriorNetImpl::FlowPriorNetImpl(int vocab_size, int num_joints, const FlowPri
   null_text = register_parameter("null_text", torch::randn({c.text_width}) * 0.02);
   joint_mean = register_buffer("joint_mean", torch::zeros({3}));
   joint_std = register_buffer("joint_std", torch::ones({3}));
+  clean_prediction = c.prediction == "clean";
+  clean_eps = c.clean_eps;
+}
+
+torch::Tensor FlowPriorNetImpl::to_velocity(const torch::Tensor& out, const torch::Tensor& x,
+                                            const torch::Tensor& t) const {
+  if (!clean_prediction) return out;
+  auto gap = (1 - t.to(x.device(), x.scalar_type())).clamp_min(clean_eps).view({-1, 1, 1, 1});
+  return (out - x) / gap;
+}
+
+torch::Tensor FlowPriorNetImpl::to_clean(const torch::Tensor& out, const torch::Tensor& x,
+                                         const torch::Tensor& t) const {
+  if (clean_prediction) return out;
+  return x + (1 - t.to(x.device(), x.scalar_type())).view({-1, 1, 1, 1}) * out;
 }
 
 torch::Tensor FlowPriorNetImpl::encode_text(const torch::Tensor& ids, const torch::Tensor& lengths) {
@@ -120,7 +137,7 @@ class FlowPriorTrainer : public Trainable {
   // Flow-matching loss, eq. (3), masked to valid frames; t, x0, crops, captions
   // and condition dropout all come from torch's generator (exact resume).
   LossOutput loss(const std::vector<int64_t>& idx) override {
-    MotionBatch b = ctx_.data->batch(idx, ctx_.window, 1, ctx_.device);
+    MotionBatch b = ctx_.data->batch(idx, ctx_.window, 1, ctx_.device, ctx_.trim_padding);
     const MotionSet& set = ctx_.data->set();
     std::vector<std::string> caps;
     for (int64_t i : idx) {
@@ -131,7 +148,7 @@ class FlowPriorTrainer : public Trainable {
     auto x0 = torch::randn(b.joints.sizes()).to(ctx_.device);
     auto t = torch::rand({B}).to(ctx_.device);
     auto drop = (torch::rand({B}) < cfg_.cond_drop).to(ctx_.device);
-    auto fl = flow_loss(b, caps, x0, t, drop);
+    auto fl = flow_loss(b, caps, x0, t, drop, cfg_.loss)[0];
     LossOutput out;
     out.loss = fl;
     out.parts = {{"fm", fl.detach()}};
@@ -147,9 +164,9 @@ class FlowPriorTrainer : public Trainable {
     const MotionSet& set = ctx_.data->set();
     auto gen = at::make_generator<at::CPUGeneratorImpl>(20240611);
     std::map<std::string, double> out;
-    double total = 0;
+    double total = 0, total_clean = 0;
     for (double tv : cfg_.eval_t) {
-      double sum = 0, weight = 0;
+      double sum = 0, sum_clean = 0, weight = 0;
       for (size_t s = 0; s < idx.size(); s += 32) {
         std::vector<int64_t> chunk(idx.begin() + s, idx.begin() + std::min(idx.size(), s + 32));
         MotionBatch b = ctx_.data->batch(chunk, 0, 1, ctx_.device);
@@ -160,15 +177,40 @@ class FlowPriorTrainer : public Trainable {
         auto t = torch::full({B}, tv, torch::TensorOptions().device(ctx_.device));
         auto drop = torch::zeros({B}, torch::TensorOptions().dtype(torch::kBool).device(ctx_.device));
         double w = b.mask.sum().item<double>();
-        sum += flow_loss(b, caps, x0, t, drop).item<double>() * w;
+        auto both = flow_loss(b, caps, x0, t, drop, "both");
+        sum += both[0].item<double>() * w;
+        sum_clean += both[1].item<double>() * w;
         weight += w;
       }
-      double l = sum / std::max(1.0, weight);
+      double l = sum / std::max(1.0, weight), lc = sum_clean / std::max(1.0, weight);
       out[fmt::format("val_fm_t{:.2f}", tv)] = l;
+      out[fmt::format("val_x1_t{:.2f}", tv)] = lc;
       total += l;
+      total_clean += lc;
     }
+    // Velocity error (eq. (3)) and clean-endpoint error: the second compares
+    // velocity and clean networks on one scale.
     out["val_fm"] = total / cfg_.eval_t.size();
+    out["val_x1"] = total_clean / cfg_.eval_t.size();
     return out;
+  }
+
+  // Forward multiply-adds x2 on the valid frames of each clip (per token: qkv,
+  // projection, SwiGLU and attention over the clip's own frames; embed and head),
+  // the text encoder on max_words tokens, then x3 for forward + backward.
+  double flops_per_step(const std::vector<int64_t>& idx) const override {
+    auto o = cfg_.transformer_options(ctx_.data->num_joints());
+    const double d = o.width, h = o.resolved_mlp_hidden(), io = o.num_joints * 3.0;
+    const double dt = cfg_.text_width, ff = cfg_.text_ff, w = cfg_.max_words;
+    double fwd = 0;
+    for (int64_t i : idx) {
+      const double L = std::min<int64_t>(ctx_.data->length(i), ctx_.window > 0 ? ctx_.window : INT64_MAX);
+      const double per_token_block = 8 * d * d + 6 * d * h + 4 * L * d;
+      fwd += L * (o.depth * per_token_block + 4 * io * d);               // blocks, embed + head
+      fwd += 2 * d * (o.depth * 6 * d + 2 * d) + 2 * 2 * d * d;           // AdaLN per clip, t_mlp
+      fwd += w * cfg_.text_layers * (8 * dt * dt + 4 * dt * ff + 4 * w * dt) + 2 * dt * dt;  // text encoder
+    }
+    return 3 * fwd;
   }
 
   void save_artifacts(const fs::path& outputs) override {
@@ -186,19 +228,32 @@ class FlowPriorTrainer : public Trainable {
 
  private:
   // Masked MSE between the predicted and the target velocity x1 - x0 on
-  // x_t = t x1 + (1 - t) x0, eq. (2)-(3).
-  torch::Tensor flow_loss(const MotionBatch& b, const std::vector<std::string>& caps, const torch::Tensor& x0,
-                          const torch::Tensor& t, const torch::Tensor& drop) {
+  // x_t = t x1 + (1 - t) x0, eq. (2)-(3); with model.loss = clean, between the
+  // predicted and the true clean endpoint x1.
+  // `space` velocity or clean: {that error}; both: {velocity error, clean error}.
+  std::vector<torch::Tensor> flow_loss(const MotionBatch& b, const std::vector<std::string>& caps,
+                                       const torch::Tensor& x0, const torch::Tensor& t, const torch::Tensor& drop,
+                                       const std::string& space) {
     const auto& x1 = b.joints;
     auto tb = t.view({-1, 1, 1, 1});
     auto xt = tb * x1 + (1 - tb) * x0;
     auto enc = encode_captions(vocab_, caps, cfg_.max_words);
     auto cond = net_->encode_text(enc.ids.to(ctx_.device), enc.lengths.to(ctx_.device));
     cond = torch::where(drop.unsqueeze(1), net_->null_condition(cond.size(0)), cond);
-    auto v = net_->transformer->forward(xt, t, cond, b.mask).velocity;
-    auto m = b.mask.view({b.mask.size(0), b.mask.size(1), 1, 1}).to(v.dtype());
+    auto out = net_->transformer->forward(xt, t, cond, b.mask).velocity;
+    auto m = b.mask.view({b.mask.size(0), b.mask.size(1), 1, 1}).to(out.dtype());
     auto denom = m.sum() * x1.size(2) * 3 + 1e-8;
-    return ((v - (x1 - x0)).pow(2) * m).sum() / denom;
+    auto mse = [&](const torch::Tensor& err) { return (err.pow(2) * m).sum() / denom; };
+    // A clean network's velocity error is its clean error over max(1 - t, eps):
+    // exactly the velocity error where 1 - t >= eps, and no target that pushes
+    // x1_hat past x1 where the floor bites.
+    auto v_err = [&] {
+      if (!net_->clean_prediction) return mse(out - (x1 - x0));
+      return mse((out - x1) / (1 - t).clamp_min(cfg_.clean_eps).view({-1, 1, 1, 1}));
+    };
+    auto x_err = [&] { return mse(net_->to_clean(out, xt, t) - x1); };
+    if (space == "both") return {v_err(), x_err()};
+    return {space == "clean" ? x_err() : v_err()};
   }
 
   FlowPriorConfig cfg_;

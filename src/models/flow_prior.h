@@ -26,6 +26,13 @@ struct FlowPriorConfig : Config {
   double text_dropout = 0.1;
   int max_words = 32;
   std::vector<double> eval_t = {0.1, 0.3, 0.5, 0.7, 0.9};
+  // What the network outputs. velocity: v = x1 - x0 (ACMDM). clean: the clean
+  // endpoint x1 (x-prediction, as later absolute-coordinate flows use); the
+  // velocity is then (x1_hat - x_t) / max(1 - t, clean_eps), so every sampler is
+  // unchanged. loss: which error is averaged, velocity (eq. (3)) or clean.
+  std::string prediction = "velocity";
+  std::string loss = "velocity";
+  double clean_eps = 0.05;
   void visit(FieldVisitor& v) override {
     v("depth", depth, "transformer blocks L", in_range(1, 64));
     v("width", width, "hidden size d (0 = 64 * depth)", at_least(0));
@@ -41,6 +48,11 @@ struct FlowPriorConfig : Config {
     v("text_dropout", text_dropout, "text encoder dropout", in_range(0.0, 0.9));
     v("max_words", max_words, "caption length cap in tokens (incl. <sos>/<eos>)", in_range(4, 256));
     v("eval_t", eval_t, "flow times at which evaluate() reports the validation loss", each(in_range(0.0, 1.0)));
+    v("prediction", prediction, "network output: velocity (x1 - x0, ACMDM) or clean (the endpoint x1)",
+      one_of({"velocity", "clean"}));
+    v("loss", loss, "training error: velocity (eq. (3)) or clean (||x1_hat - x1||^2)", one_of({"velocity", "clean"}));
+    v("clean_eps", clean_eps, "clean prediction: floor of 1 - t when turning x1_hat into a velocity",
+      in_range(1e-4, 0.5));
   }
   std::string validate() const override;
   FlowTransformerOptions transformer_options(int num_joints) const;
@@ -72,6 +84,13 @@ struct FlowPriorNetImpl : torch::nn::Module {
   torch::Tensor encode_text(const torch::Tensor& ids, const torch::Tensor& lengths);
   // The null condition broadcast to [B, text_width].
   torch::Tensor null_condition(int64_t B) const;
+  // The velocity the network's output `out` stands for at (x, t) (t [B]), and the
+  // clean endpoint it implies: identity / (out - x)/(1 - t) for velocity networks,
+  // (out - x)/max(1 - t, eps) / identity for clean ones.
+  torch::Tensor to_velocity(const torch::Tensor& out, const torch::Tensor& x, const torch::Tensor& t) const;
+  torch::Tensor to_clean(const torch::Tensor& out, const torch::Tensor& x, const torch::Tensor& t) const;
+  bool clean_prediction = false;
+  double clean_eps = 0.05;
   FlowTextEncoder text{nullptr};
   FlowTransformer transformer{nullptr};
   torch::Tensor null_text;             // [text_width] parameter

@@ -103,7 +103,7 @@ torch::Tensor FlowPrior::null_texts(int64_t B) const { return (*net_)->null_cond
 torch::Tensor FlowPrior::raw_velocity(const torch::Tensor& x, const torch::Tensor& t, const torch::Tensor& text,
                                       const torch::Tensor& mask) const {
   auto tt = t.to(x.device(), torch::kFloat32).reshape({-1}).expand({x.size(0)});
-  return (*net_)->transformer->forward(x, tt, text, mask).velocity;
+  return (*net_)->to_velocity((*net_)->transformer->forward(x, tt, text, mask).velocity, x, tt);
 }
 
 torch::Tensor FlowPrior::velocity(const torch::Tensor& x, const torch::Tensor& t, const torch::Tensor& text,

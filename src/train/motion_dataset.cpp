@@ -35,9 +35,14 @@ torch::Tensor MotionDataset::denormalize(const torch::Tensor& normed) const {
 }
 
 MotionBatch MotionDataset::batch(const std::vector<int64_t>& idx, int window, int round_to,
-                                 const torch::Device& device) const {
+                                 const torch::Device& device, bool trim) const {
   const int64_t B = idx.size(), J = num_joints();
   int64_t T = window > 0 ? window : set_.t_max;
+  if (window == 0 && trim) {
+    int64_t longest = 1;
+    for (int64_t i : idx) longest = std::max<int64_t>(longest, set_.lengths[i]);
+    T = std::min<int64_t>(T, longest);
+  }
   if (round_to > 1) T = (T + round_to - 1) / round_to * round_to;
   auto x = torch::zeros({B, T, J, 3});
   auto mask = torch::zeros({B, T}, torch::kBool);

@@ -15,10 +15,21 @@ struct DataConfig : Config {
   std::string path = "data/fixture_smoke.h5";
   std::string fixture = "configs/data/smoke.yaml";  // built with `motionctl fixture` when `path` is missing
   int window = 64;                                  // training crop in frames; 0 = full padded length
+  // Whole-clip batches (window 0) are padded only to their longest clip: the flow
+  // loss and attention mask padding, so this changes no result, only the cost.
+  bool trim_padding = true;
+  // Length bucketing: the epoch's shuffled order is cut into groups of this many
+  // batches, each group sorted by length, and the batches shuffled again, so a
+  // batch holds clips of similar length and trimming removes most padding.
+  int length_buckets = 0;
   void visit(FieldVisitor& v) override {
     v("path", path, "motion HDF5 file (docs/formats.md)");
     v("fixture", fixture, "fixture config that builds `path` when it is missing ('' = never build)");
     v("window", window, "training crop length in frames (0 = whole clip)", at_least(0));
+    v("trim_padding", trim_padding, "whole-clip batches (window 0) pad only to their longest clip");
+    v("length_buckets", length_buckets,
+      "sort groups of this many batches by clip length so batches hold similar lengths (0 = plain shuffle)",
+      in_range(0, 10000));
   }
 };
 
@@ -42,8 +53,11 @@ class MotionDataset {
   torch::Tensor joint_std() const { return std_; }    // (3,)
 
   // Normalised clips; window > 0 crops a random window (padded when shorter),
-  // `round_to` pads T up to a multiple (for strided convolutions).
-  MotionBatch batch(const std::vector<int64_t>& idx, int window, int round_to, const torch::Device& device) const;
+  // `round_to` pads T up to a multiple (for strided convolutions). With window 0,
+  // `trim` pads to the longest clip of the batch instead of t_max.
+  MotionBatch batch(const std::vector<int64_t>& idx, int window, int round_to, const torch::Device& device,
+                    bool trim = false) const;
+  int64_t length(int64_t i) const { return set_.lengths[i]; }
   torch::Tensor normalize(const torch::Tensor& world) const;    // [..., 3]
   torch::Tensor denormalize(const torch::Tensor& normed) const;  // [..., 3]
 

@@ -8,6 +8,9 @@
 
 #include "core/error.h"
 #include "data/fixture/fixture_build.h"
+#include "train/pretrained.h"
+
+#include <iostream>
 
 namespace mc {
 namespace fs = std::filesystem;
@@ -43,8 +46,17 @@ void set_config_redirects(const std::vector<std::string>& from_to, const std::st
 
 static std::string stem_of(const std::string& file) { return fs::path(file).stem().string(); }
 
+// <config stem>-<hash>: run.threads and run.force are not part of a run's identity
+// (a run trained on one thread is the run a two-thread job asks for).
+static std::string default_run_name(const std::string& file, const TrainJobConfig& job) {
+  TrainJobConfig key = job;
+  key.run.threads = 0;
+  key.run.force = false;
+  return fmt::format("{}-{}", stem_of(file), config_hash(key));
+}
+
 // Builds the training data from its fixture config when the file is missing.
-static void ensure_training_data(const TrainJobConfig& job) {
+void ensure_training_data(const TrainJobConfig& job) {
   if (fs::exists(resolve_data_path(job.data.path))) return;
   if (job.data.fixture.empty())
     fail("data.path '{}' does not exist and data.fixture is empty; build it with `motionctl fixture` or point "
@@ -61,12 +73,26 @@ TrainResult run_train(const std::string& requested, const std::vector<std::strin
   }
   auto job = load_job<TrainJobConfig>(file, overrides);
   ensure_training_data(job);
-  std::string name = fmt::format("{}-{}", stem_of(file), config_hash(job));
+  std::string name = default_run_name(file, job);
+  // A component shipped in pretrained/ under this very name is installed, not retrained.
+  if (!job.run.force && job.run.name.empty())
+    install_pretrained(job.run.experiment, name, fs::path(job.run.root) / job.run.experiment / name, &std::cerr);
   TrainResult r = train(job, overrides, name, stop_after);
   auto& used = trained_runs_registry();
   const std::string dir = r.run_dir.string();
   if (std::find(used.begin(), used.end(), dir) == used.end()) used.push_back(dir);
   return r;
+}
+
+fs::path run_dir_of(const std::string& requested, const std::vector<std::string>& overrides) {
+  std::string file = requested;
+  if (!config_redirects().empty()) {
+    auto it = config_redirects().find(canonical_config(requested));
+    if (it != config_redirects().end()) file = resolve_data_path(it->second);
+  }
+  auto job = load_job<TrainJobConfig>(file, overrides);
+  std::string name = job.run.name.empty() ? default_run_name(file, job) : job.run.name;
+  return fs::path(job.run.root) / job.run.experiment / name;
 }
 
 std::vector<std::string> take_trained_runs() {

@@ -2,6 +2,7 @@
 // name the run <config stem>-<hash>, train or resume or skip. Other commands use
 // it to get a trained component (evaluator, prior, tokenizer) on demand.
 #pragma once
+#include <filesystem>
 #include <string>
 #include <vector>
 
@@ -11,6 +12,12 @@ namespace mc {
 
 TrainResult run_train(const std::string& config_file, const std::vector<std::string>& overrides,
                       int64_t stop_after = 0);
+
+// The run directory run_train(config, overrides) trains or reuses (no training).
+std::filesystem::path run_dir_of(const std::string& config_file, const std::vector<std::string>& overrides);
+
+// Builds the job's training data from data.fixture when data.path is missing.
+void ensure_training_data(const TrainJobConfig& job);
 
 // Run directories run_train has returned since the last call (distinct, in
 // first-use order), and forgets them: lets the table replay record which trained

@@ -24,6 +24,7 @@ struct TrainContext {
   torch::Device device = torch::kCPU;
   const Config* job = nullptr;  // the whole job config, for models that need other sections
   int window = 0;
+  bool trim_padding = false;  // data.trim_padding
 };
 
 class Trainable {
@@ -35,6 +36,13 @@ class Trainable {
   virtual LossOutput loss(const std::vector<int64_t>& batch_indices) = 0;
   // Metrics of the final (EMA) weights, e.g. validation reconstruction error.
   virtual std::map<std::string, double> evaluate() { return {}; }
+  // Multiply-add FLOPs (x2) of one training step (forward + backward) on this
+  // batch, counting valid frames only; 0 = not known. `motionctl bench train`
+  // reports the rate against sgemm's.
+  virtual double flops_per_step(const std::vector<int64_t>& batch_indices) const {
+    (void)batch_indices;
+    return 0;
+  }
   // Files a later user of the trained model needs besides the weights (e.g. a
   // vocabulary), written into the run directory's outputs/ when training ends.
   virtual void save_artifacts(const fs::path& outputs_dir) { (void)outputs_dir; }

@@ -67,43 +67,65 @@ torch::Device setup_torch(const RunConfig& run) {
 
 // ---------------------------------------------------------------- data order
 
-namespace {
+EpochSampler::EpochSampler(std::vector<int64_t> pool, uint64_t seed, std::vector<int64_t> lengths, int batch,
+                           int buckets)
+    : pool_(std::move(pool)), lengths_(std::move(lengths)), seed_(seed), batch_(batch), buckets_(buckets) {
+  shuffle();
+}
 
-// Epoch-wise shuffled batches; the permutation of an epoch depends only on
-// (seed, epoch), so (epoch, pos) is the whole state.
-class EpochSampler {
- public:
-  EpochSampler(std::vector<int64_t> pool, uint64_t seed) : pool_(std::move(pool)), seed_(seed) { shuffle(); }
-  std::vector<int64_t> next(int n) {
-    std::vector<int64_t> out;
-    while (static_cast<int>(out.size()) < n) {
-      if (pos_ >= static_cast<int64_t>(order_.size())) {
-        ++epoch_;
-        pos_ = 0;
-        shuffle();
-      }
-      out.push_back(order_[pos_++]);
+std::vector<int64_t> EpochSampler::next(int n) {
+  std::vector<int64_t> out;
+  while (static_cast<int>(out.size()) < n) {
+    if (pos_ >= static_cast<int64_t>(order_.size())) {
+      ++epoch_;
+      pos_ = 0;
+      shuffle();
     }
-    return out;
+    out.push_back(order_[pos_++]);
   }
-  int64_t epoch() const { return epoch_; }
-  int64_t pos() const { return pos_; }
-  void restore(int64_t epoch, int64_t pos) {
-    epoch_ = epoch;
-    pos_ = pos;
-    shuffle();
-  }
+  return out;
+}
 
- private:
-  void shuffle() {
-    order_ = pool_;
-    std::mt19937_64 rng(seed_ ^ (0x9E3779B97F4A7C15ull * static_cast<uint64_t>(epoch_ + 1)));
-    for (size_t i = order_.size(); i > 1; --i) std::swap(order_[i - 1], order_[rng() % i]);  // Fisher-Yates
+void EpochSampler::restore(int64_t epoch, int64_t pos) {
+  epoch_ = epoch;
+  pos_ = pos;
+  shuffle();
+}
+
+void EpochSampler::shuffle() {
+  order_ = pool_;
+  std::mt19937_64 rng(seed_ ^ (0x9E3779B97F4A7C15ull * static_cast<uint64_t>(epoch_ + 1)));
+  for (size_t i = order_.size(); i > 1; --i) std::swap(order_[i - 1], order_[rng() % i]);  // Fisher-Yates
+  if (buckets_ <= 0 || batch_ <= 1 || lengths_.empty()) return;
+  // Sort each group of buckets_ batches by length (stable: ties keep the shuffled
+  // order), cut it into batches, then shuffle the whole batches so lengths do not
+  // follow a pattern over the epoch. A function of (seed, epoch) still.
+  const size_t group = static_cast<size_t>(buckets_) * batch_;
+  for (size_t g = 0; g < order_.size(); g += group) {
+    auto end = order_.begin() + std::min(order_.size(), g + group);
+    std::stable_sort(order_.begin() + g, end,
+                     [&](int64_t a, int64_t b) { return lengths_[a] < lengths_[b]; });
   }
-  std::vector<int64_t> pool_, order_;
-  uint64_t seed_;
-  int64_t epoch_ = 0, pos_ = 0;
-};
+  const size_t nb = order_.size() / batch_;  // a final partial batch stays last
+  std::vector<size_t> perm(nb);
+  for (size_t i = 0; i < nb; ++i) perm[i] = i;
+  for (size_t i = nb; i > 1; --i) std::swap(perm[i - 1], perm[rng() % i]);
+  std::vector<int64_t> out;
+  out.reserve(order_.size());
+  for (size_t b : perm) out.insert(out.end(), order_.begin() + b * batch_, order_.begin() + (b + 1) * batch_);
+  out.insert(out.end(), order_.begin() + nb * batch_, order_.end());
+  order_ = std::move(out);
+}
+
+EpochSampler make_sampler(const TrainJobConfig& job, const MotionDataset& data) {
+  std::vector<int64_t> lengths;
+  if (job.data.length_buckets > 0)
+    for (int64_t i = 0; i < static_cast<int64_t>(data.set().size()); ++i) lengths.push_back(data.length(i));
+  return EpochSampler(data.split("train"), static_cast<uint64_t>(job.run.seed), std::move(lengths),
+                      job.optim.batch_size, job.data.length_buckets);
+}
+
+namespace {
 
 torch::Tensor rng_state() {
   auto gen = at::detail::getDefaultCPUGenerator();
@@ -199,7 +221,7 @@ TrainResult train(TrainJobConfig& job, const std::vector<std::string>& overrides
   }
   torch::Device device = setup_torch(job.run);
   auto data = MotionDataset::load(resolve_data_path(job.data.path));
-  TrainContext ctx{data, device, &job, job.data.window};
+  TrainContext ctx{data, device, &job, job.data.window, job.data.trim_padding};
   auto trainable = make_trainable(job.model, ctx);
   trainable->module().to(device);
   auto params = trainable->trainable_parameters();
@@ -212,7 +234,7 @@ TrainResult train(TrainJobConfig& job, const std::vector<std::string>& overrides
   std::vector<torch::Tensor> ema;
   if (job.optim.ema_decay > 0)
     for (auto& p : params) ema.push_back(p.detach().clone());
-  EpochSampler sampler(data->split("train"), static_cast<uint64_t>(job.run.seed));
+  EpochSampler sampler = make_sampler(job, *data);
   MetricsCsv metrics(run.metrics_path());
   LoopState st;
   fs::path last = run.checkpoints() / "last.pt";

@@ -68,6 +68,30 @@ struct TrainResult {
   std::map<std::string, double> summary;
 };
 
+// Epoch-wise shuffled batches; the permutation of an epoch depends only on
+// (seed, epoch), so (epoch, pos) is the whole state. With `buckets` > 0 and clip
+// `lengths` (indexed by clip id), groups of `buckets` batches are sorted by length
+// before the batches are shuffled (data.length_buckets).
+class EpochSampler {
+ public:
+  EpochSampler(std::vector<int64_t> pool, uint64_t seed, std::vector<int64_t> lengths = {}, int batch = 0,
+               int buckets = 0);
+  std::vector<int64_t> next(int n);
+  int64_t epoch() const { return epoch_; }
+  int64_t pos() const { return pos_; }
+  void restore(int64_t epoch, int64_t pos);
+
+ private:
+  void shuffle();
+  std::vector<int64_t> pool_, order_, lengths_;
+  uint64_t seed_;
+  int batch_ = 0, buckets_ = 0;
+  int64_t epoch_ = 0, pos_ = 0;
+};
+
+// The training sampler a job uses: its train split, seed, batch and length buckets.
+EpochSampler make_sampler(const TrainJobConfig& job, const MotionDataset& data);
+
 // Applies run.threads/device/seed; returns the device.
 torch::Device setup_torch(const RunConfig& run);
 

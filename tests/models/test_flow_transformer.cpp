@@ -140,3 +140,71 @@ TEST_CASE("flow prior: the S config builds and runs one training step", "[flow]"
   CHECK(e1.at("val_fm") == e2.at("val_fm"));
   CHECK(e1.count("val_fm_t0.50") == 1);
 }
+
+namespace {
+// A tiny flow prior trainer on random clips of the given lengths (t_max 30).
+std::unique_ptr<Trainable> tiny_flow_trainer(TrainJobConfig& job, const std::string& extra, bool trim,
+                                             std::shared_ptr<MotionDataset>* data_out = nullptr) {
+  parse_config(config_from_string("model:\n  type: flow_prior\n  depth: 2\n  width: 32\n  heads: 2\n"
+                                  "  text_width: 16\n  text_heads: 2\n  text_ff: 32\n  text_layers: 1\n" +
+                                  extra),
+               job);
+  MotionSet set = test::random_motion_set({12, 30, 17, 9}, {"train", "train", "val", "val"});
+  set.stats = compute_norm_stats(set);
+  set.vocab = TextVocab::build(set).words();
+  auto data = std::make_shared<MotionDataset>(set, "<memory>");
+  if (data_out) *data_out = data;
+  torch::manual_seed(4);
+  TrainContext ctx{data, torch::kCPU, &job, 0, trim};
+  return make_trainable(job.model, ctx);
+}
+}  // namespace
+
+TEST_CASE("flow prior: padding trimmed to the longest clip changes neither the loss nor the FLOP count",
+          "[flow]") {
+  TrainJobConfig a, b;
+  std::shared_ptr<MotionDataset> data;
+  auto padded = tiny_flow_trainer(a, "", false, &data);
+  auto trimmed = tiny_flow_trainer(b, "", true);
+  // Same non-trivial weights in both (AdaLN-Zero would make the output 0).
+  for (auto* tr : {padded.get(), trimmed.get()}) {
+    torch::manual_seed(21);
+    torch::NoGradGuard ng;
+    for (auto& p : tr->module().parameters()) p.normal_(0.0, 0.1);
+  }
+  // Clips 0 and 2 (12 and 17 frames of 30): the trimmed batch has 17 frames.
+  CHECK(data->batch({0, 2}, 0, 1, torch::kCPU, true).joints.size(1) == 17);
+  CHECK(data->batch({0, 2}, 0, 1, torch::kCPU, false).joints.size(1) == 30);
+  torch::manual_seed(9);
+  double lp = padded->loss({0, 2}).loss.item<double>();
+  torch::manual_seed(9);
+  double lt = trimmed->loss({0, 2}).loss.item<double>();
+  CHECK(lt == Approx(lp).epsilon(1e-5));
+  CHECK(padded->flops_per_step({0, 2}) == trimmed->flops_per_step({0, 2}));
+  CHECK(padded->flops_per_step({0, 2}) < padded->flops_per_step({1, 2}));  // FLOPs follow valid frames
+}
+
+TEST_CASE("flow prior: clean prediction turns x1_hat into the velocity of the straight path", "[flow]") {
+  TrainJobConfig job;
+  auto tr = tiny_flow_trainer(job, "  prediction: clean\n  loss: velocity\n  clean_eps: 0.05\n", true);
+  auto& net = dynamic_cast<FlowPriorNetImpl&>(tr->module());
+  REQUIRE(net.clean_prediction);
+  auto x = torch::randn({2, 5, 22, 3}), x1 = torch::randn({2, 5, 22, 3});
+  auto t = torch::tensor({0.3f, 0.99f});
+  auto v = net.to_velocity(x1, x, t);
+  // Away from t = 1: x + (1 - t) v lands on x1_hat exactly; near t = 1 the gap is floored.
+  CHECK(torch::allclose(x[0] + 0.7 * v[0], x1[0], 1e-5, 1e-5));
+  CHECK(torch::allclose(v[1], (x1[1] - x[1]) / 0.05, 1e-4, 1e-4));
+  CHECK(torch::allclose(net.to_clean(x1, x, t), x1));
+  // Training and validation run, and report the clean-endpoint error beside the velocity error.
+  auto out = tr->loss({0, 1});
+  REQUIRE(std::isfinite(out.loss.item<double>()));
+  out.loss.backward();
+  tr->module().eval();
+  auto e = tr->evaluate();
+  CHECK(e.count("val_x1") == 1);
+  CHECK(e.count("val_x1_t0.90") == 1);
+  // A velocity network cannot be trained on the clean error (that loss is its velocity error times 1 - t).
+  TrainJobConfig bad;
+  CHECK_THROWS_AS(tiny_flow_trainer(bad, "  prediction: velocity\n  loss: clean\n", true), UserError);
+}

@@ -1,0 +1,161 @@
+// Shipped trained components: manifest, integrity check and installation into runs/.
+#include "train/pretrained.h"
+
+#include <c10/util/hash.h>
+#include <yaml-cpp/yaml.h>
+
+#include <unistd.h>
+
+#include <algorithm>
+#include <cstdlib>
+#include <fstream>
+#include <sstream>
+
+#include "core/atomic_file.h"
+#include "core/error.h"
+
+namespace mc {
+
+fs::path pretrained_root() {
+  if (const char* env = std::getenv("MOTIONCTL_PRETRAINED")) {
+    std::string v = env;
+    if (v.empty() || v == "none") return {};
+    return v;
+  }
+  return fs::path(MOTIONCTL_SOURCE_DIR) / "pretrained";
+}
+
+std::vector<PretrainedEntry> read_pretrained_manifest(const fs::path& root) {
+  std::vector<PretrainedEntry> out;
+  if (root.empty()) return out;
+  const fs::path file = root / "manifest.yaml";
+  if (!fs::exists(file)) return out;
+  YAML::Node doc;
+  try {
+    doc = YAML::LoadFile(file.string());
+  } catch (const YAML::Exception& e) {
+    fail("{}: not valid YAML ({}); restore it with git or delete the folder", file.string(), e.what());
+  }
+  const YAML::Node list = doc["components"];
+  if (!list || !list.IsSequence()) fail("{}: needs a list under 'components'", file.string());
+  for (size_t i = 0; i < list.size(); ++i) {
+    const YAML::Node n = list[i];
+    PretrainedEntry e;
+    auto get = [&](const char* key) {
+      if (!n.IsMap() || !n[key] || !n[key].IsScalar())
+        fail("{}: components[{}] has no '{}' (each entry: experiment, name, config, sha1, retrain)", file.string(), i,
+             key);
+      return n[key].as<std::string>();
+    };
+    e.experiment = get("experiment");
+    e.name = get("name");
+    e.config = get("config");
+    e.sha1 = get("sha1");
+    e.retrain = get("retrain");
+    e.dir = root / e.experiment / e.name;
+    out.push_back(e);
+  }
+  return out;
+}
+
+std::optional<PretrainedEntry> find_pretrained(const fs::path& root, const std::string& experiment,
+                                               const std::string& name) {
+  for (auto& e : read_pretrained_manifest(root))
+    if (e.experiment == experiment && e.name == name) return e;
+  return std::nullopt;
+}
+
+std::string file_sha1(const fs::path& file) {
+  std::ifstream f(file, std::ios::binary);
+  if (!f) fail("cannot read '{}'", file.string());
+  std::stringstream ss;
+  ss << f.rdbuf();
+  return c10::sha1(ss.str()).str();
+}
+
+namespace {
+
+// Copies `from` to `to` through a temporary sibling renamed into place: a reader
+// never sees a half-copied run directory.
+void copy_tree_atomic(const fs::path& from, const fs::path& to) {
+  fs::path tmp = to;
+  tmp += fmt::format(".tmp.{}", ::getpid());
+  std::error_code ec;
+  fs::remove_all(tmp, ec);
+  fs::create_directories(tmp.parent_path(), ec);
+  fs::copy(from, tmp, fs::copy_options::recursive, ec);
+  if (ec) fail("cannot copy '{}' to '{}': {}", from.string(), tmp.string(), ec.message());
+  fs::rename(tmp, to, ec);
+  if (ec) {
+    fs::remove_all(tmp);
+    if (!fs::exists(to)) fail("cannot move '{}' into place as '{}': {}", tmp.string(), to.string(), ec.message());
+  }
+}
+
+}  // namespace
+
+bool install_pretrained(const std::string& experiment, const std::string& name, const fs::path& run_dir,
+                        std::ostream* log) {
+  if (fs::exists(run_dir)) return false;
+  const fs::path root = pretrained_root();
+  auto e = find_pretrained(root, experiment, name);
+  if (!e) return false;
+  const fs::path ckpt = e->dir / "checkpoints" / "final.pt";
+  if (!fs::exists(ckpt) || !fs::exists(e->dir / "DONE"))
+    fail("shipped component '{}' is incomplete ({} or DONE missing); restore pretrained/ with git", e->name,
+         ckpt.string());
+  const std::string got = file_sha1(ckpt);
+  if (got != e->sha1)
+    fail("shipped component '{}': {} has SHA-1 {} but the manifest says {}; restore it with git or retrain it "
+         "with `{}`",
+         e->name, ckpt.string(), got, e->sha1, e->retrain);
+  copy_tree_atomic(e->dir, run_dir);
+  if (log) *log << fmt::format("using the shipped {} ({}) for {}\n", e->name, e->dir.string(), e->config);
+  return true;
+}
+
+PretrainedEntry ship_run(const fs::path& run_dir, const fs::path& root, const std::string& config,
+                         const std::string& retrain) {
+  if (!fs::exists(run_dir / "DONE") || !fs::exists(run_dir / "checkpoints" / "final.pt"))
+    fail("'{}' is not a finished run (DONE or checkpoints/final.pt missing); finish it before shipping it",
+         run_dir.string());
+  PretrainedEntry e;
+  e.experiment = run_dir.parent_path().filename().string();
+  e.name = run_dir.filename().string();
+  e.config = config;
+  e.retrain = retrain;
+  e.dir = root / e.experiment / e.name;
+  const fs::path staging = root / ".staging" / e.name;
+  std::error_code ec;
+  fs::remove_all(staging, ec);
+  fs::create_directories(staging / "checkpoints");
+  for (const char* f : {"config.yaml", "overrides.txt", "seed.txt", "summary.csv", "metrics.csv", "DONE",
+                        "health.md", "health.json"})
+    if (fs::exists(run_dir / f)) fs::copy_file(run_dir / f, staging / f);
+  fs::copy_file(run_dir / "checkpoints" / "final.pt", staging / "checkpoints" / "final.pt");
+  if (fs::exists(run_dir / "outputs")) fs::copy(run_dir / "outputs", staging / "outputs", fs::copy_options::recursive);
+  e.sha1 = file_sha1(staging / "checkpoints" / "final.pt");
+  fs::remove_all(e.dir, ec);
+  fs::create_directories(e.dir.parent_path());
+  fs::rename(staging, e.dir);
+  fs::remove_all(root / ".staging", ec);
+
+  auto entries = read_pretrained_manifest(root);
+  entries.erase(std::remove_if(entries.begin(), entries.end(),
+                               [&](const PretrainedEntry& x) { return x.experiment == e.experiment && x.name == e.name; }),
+                entries.end());
+  entries.push_back(e);
+  YAML::Emitter y;
+  y << YAML::Comment("Trained components shipped with motionctl (written by `motionctl ship`). run_train installs "
+                     "an entry into runs/ when it is about to train a run of the same experiment and name.");
+  y << YAML::BeginMap << YAML::Key << "components" << YAML::Value << YAML::BeginSeq;
+  for (auto& x : entries)
+    y << YAML::BeginMap << YAML::Key << "experiment" << YAML::Value << x.experiment << YAML::Key << "name"
+      << YAML::Value << x.name << YAML::Key << "config" << YAML::Value << x.config << YAML::Key << "sha1"
+      << YAML::Value << x.sha1 << YAML::Key << "retrain" << YAML::Value << x.retrain << YAML::EndMap;
+  y << YAML::EndSeq << YAML::EndMap;
+  write_file_atomic(root / "manifest.yaml", std::string(y.c_str()) + "\n");
+  return e;
+}
+
+}  // namespace mc

@@ -1,0 +1,50 @@
+// Trained components committed with the repository (pretrained/): a manifest of
+// finished run directories, each named as run_train names it (<config stem>-<config
+// hash>). run_train installs a shipped run into runs/ instead of training it when
+// the run it is about to train has the same experiment and name, so `reproduce`
+// and `make demo` train only what is missing or changed.
+#pragma once
+#include <filesystem>
+#include <optional>
+#include <ostream>
+#include <string>
+#include <vector>
+
+namespace mc {
+namespace fs = std::filesystem;
+
+struct PretrainedEntry {
+  std::string experiment;  // runs/<experiment>/...
+  std::string name;        // <config stem>-<config hash>
+  std::string config;      // training config it was trained from (repo-relative)
+  std::string sha1;        // of checkpoints/final.pt
+  std::string retrain;     // the command that retrains it from scratch
+  fs::path dir;            // pretrained/<experiment>/<name>
+};
+
+// The shipped folder: $MOTIONCTL_PRETRAINED when set ("" or "none" disables it),
+// else <source dir>/pretrained.
+fs::path pretrained_root();
+// Entries of <root>/manifest.yaml (none when the file is absent). UserError naming
+// the file and entry when it is malformed.
+std::vector<PretrainedEntry> read_pretrained_manifest(const fs::path& root);
+std::optional<PretrainedEntry> find_pretrained(const fs::path& root, const std::string& experiment,
+                                               const std::string& name);
+
+// SHA-1 of a file's bytes (hex); UserError when unreadable.
+std::string file_sha1(const fs::path& file);
+
+// When `experiment/name` is shipped and `run_dir` does not exist, copies the shipped
+// run there (through a temporary sibling renamed into place, after checking the
+// checkpoint's SHA-1) and returns true. `log` (may be null) gets one line.
+bool install_pretrained(const std::string& experiment, const std::string& name, const fs::path& run_dir,
+                        std::ostream* log);
+
+// Copies the files a user of a finished run needs (config.yaml, overrides.txt,
+// seed.txt, summary.csv, metrics.csv, DONE, checkpoints/final.pt, outputs/, health.*)
+// into <root>/<experiment>/<name> and adds or replaces its manifest entry.
+// UserError when the run is not finished.
+PretrainedEntry ship_run(const fs::path& run_dir, const fs::path& root, const std::string& config,
+                         const std::string& retrain);
+
+}  // namespace mc
