@@ -204,8 +204,8 @@ ControlNetLosses controlnet_losses(const FlowControlNet& net, const torch::Tenso
   out.fm = ((v - (x1 - x0)).pow(2) * valid).sum() / (valid.sum() * x1.size(2) * 3 + 1e-8);
   // ACMDM's clean estimate x0 + v uses the training noise: its error v - (x1 - x0)
   // carries the same weight at every t. x_t + (1 - t) v (what a sampler can form)
-  // has (1 - t) times that error, which leaves the branch almost no control signal
-  // near t = 1, where sampling decides the fine positions.
+  // has (1 - t) times that error, so with it the branch gets almost no control
+  // supervision near t = 1 (the loss shrinks by (1 - t)^2).
   torch::Tensor x1_hat;
   if (weighting == "none")
     x1_hat = x0 + v;
