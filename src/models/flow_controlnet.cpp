@@ -1,6 +1,6 @@
 // ControlNet branch on the flow prior: the zero-initialised copy, its trainer
-// (flow loss + L2 on controlled joints, base frozen), run loading and the
-// separately guided (text, control) velocity.
+// (flow loss + L2 on controlled joints, base frozen), run loading and ACMDM's
+// three-pass (text, control) guided velocity.
 #include "models/flow_controlnet.h"
 
 #include <ATen/CPUGeneratorImpl.h>
@@ -88,7 +88,8 @@ void FlowControlBranchImpl::copy_blocks_from(FlowTransformerImpl& base) {
 
 FlowTransformerOutput FlowControlBranchImpl::forward(FlowTransformerImpl& base, const torch::Tensor& x,
                                                      const torch::Tensor& t, const torch::Tensor& cond,
-                                                     const torch::Tensor& mask, const torch::Tensor& signal) {
+                                                     const torch::Tensor& mask, const torch::Tensor& signal,
+                                                     const torch::Tensor& control_on) {
   const int64_t B = x.size(0), T = x.size(1), J = x.size(2);
   TORCH_CHECK(J == opt.num_joints && x.size(3) == 3, "ControlNet expects [B, T, ", opt.num_joints, ", 3], got ",
               x.sizes());
@@ -98,7 +99,12 @@ FlowTransformerOutput FlowControlBranchImpl::forward(FlowTransformerImpl& base, 
   auto c = base.conditioning(t.to(x.device()).expand({B}), cond);
   auto key_valid = mask.to(x.device(), torch::kBool);
   auto h = base.embed(x.reshape({B, T, J * 3}));
-  auto hc = h + signal_zero(signal_embed->forward(signal.to(x.dtype()).reshape({B, T, J * 6})));
+  auto ctrl = signal_zero(signal_embed->forward(signal.to(x.dtype()).reshape({B, T, J * 6})));
+  if (control_on.defined()) {
+    TORCH_CHECK(control_on.numel() == B, "control_on needs one entry per sample (", B, "), got ", control_on.numel());
+    ctrl = ctrl * control_on.to(x.device(), x.dtype()).view({B, 1, 1});
+  }
+  auto hc = h + ctrl;
   for (size_t i = 0; i < blocks->size(); ++i) {
     h = base.blocks[i]->as<FlowBlockImpl>()->forward(h, c, key_valid, pos);
     hc = blocks[i]->as<FlowBlockImpl>()->forward(hc, c, key_valid, pos);
@@ -159,9 +165,10 @@ FlowControlNet FlowControlNet::load(const std::string& run_dir, torch::Device de
 }
 
 torch::Tensor FlowControlNet::raw_velocity(const torch::Tensor& x, const torch::Tensor& t, const torch::Tensor& text,
-                                           const torch::Tensor& mask, const torch::Tensor& signal) const {
+                                           const torch::Tensor& mask, const torch::Tensor& signal,
+                                           const torch::Tensor& control_on) const {
   auto tt = t.to(x.device(), torch::kFloat32).reshape({-1}).expand({x.size(0)});
-  return (*branch_)->forward(*base_->net()->transformer, x, tt, text, mask, signal).velocity;
+  return (*branch_)->forward(*base_->net()->transformer, x, tt, text, mask, signal, control_on).velocity;
 }
 
 torch::Tensor FlowControlNet::velocity(const torch::Tensor& x, const torch::Tensor& t, const torch::Tensor& text,
@@ -170,16 +177,45 @@ torch::Tensor FlowControlNet::velocity(const torch::Tensor& x, const torch::Tens
   torch::NoGradGuard ng;
   const int64_t B = x.size(0);
   auto tt = t.to(x.device(), torch::kFloat32).reshape({-1}).expand({B});
-  auto vb = base_->raw_velocity(torch::cat({x, x}), torch::cat({tt, tt}), torch::cat({text, base_->null_texts(B)}),
-                                torch::cat({mask, mask}));
-  auto v_text = vb.narrow(0, 0, B), v_null = vb.narrow(0, B, B);
-  auto v_ctrl = raw_velocity(x, tt, text, mask, signal);
-  auto v = v_null + text_cfg * (v_text - v_null) + control_cfg * (v_ctrl - v_text);
+  // The three passes in one batched call: (text, control), (null text, control), (text, no control).
+  auto on = torch::cat({torch::ones({2 * B}), torch::zeros({B})}).to(x.device());
+  auto v3 = raw_velocity(torch::cat({x, x, x}), torch::cat({tt, tt, tt}), torch::cat({text, base_->null_texts(B), text}),
+                         torch::cat({mask, mask, mask}), torch::cat({signal, signal, signal}), on);
+  auto v_tc = v3.narrow(0, 0, B), v_nc = v3.narrow(0, B, B), v_t0 = v3.narrow(0, 2 * B, B);
+  auto v = v_tc + (text_cfg - 1.0) * (v_tc - v_nc) + (control_cfg - 1.0) * (v_tc - v_t0);
   auto valid = mask.to(torch::kBool).view({B, -1, 1, 1}).expand_as(v);
   if (!torch::isfinite(v.masked_select(valid)).all().item<bool>())
     fail("the ControlNet '{}' produced a non-finite velocity (at t = {}); retrain it (lower optim.lr)", run_dir_,
          tt[0].item<double>());
   return v;
+}
+
+ControlNetLosses controlnet_losses(const FlowControlNet& net, const torch::Tensor& x1, const torch::Tensor& x0,
+                                   const torch::Tensor& t, const torch::Tensor& text, const torch::Tensor& mask,
+                                   const torch::Tensor& cmask, const torch::Tensor& control_on,
+                                   const std::string& weighting) {
+  const int64_t B = x1.size(0);
+  auto valid = mask.view({B, mask.size(1), 1, 1}).to(x1.dtype());
+  auto tb = t.view({-1, 1, 1, 1}).to(x1.dtype());
+  auto xt = tb * x1 + (1 - tb) * x0;
+  auto cm = cmask.to(x1.dtype()) * valid;
+  auto v = net.raw_velocity(xt, t, text, mask, control_signal(x1, cm), control_on);
+  ControlNetLosses out;
+  out.fm = ((v - (x1 - x0)).pow(2) * valid).sum() / (valid.sum() * x1.size(2) * 3 + 1e-8);
+  // ACMDM's clean estimate x0 + v uses the training noise: its error v - (x1 - x0)
+  // carries the same weight at every t. x_t + (1 - t) v (what a sampler can form)
+  // has (1 - t) times that error, so with it the branch gets almost no control
+  // supervision near t = 1 (the loss shrinks by (1 - t)^2).
+  torch::Tensor x1_hat;
+  if (weighting == "none")
+    x1_hat = x0 + v;
+  else if (weighting == "one_minus_t_sq")
+    x1_hat = xt + (1 - tb) * v;
+  else
+    fail("model.control_loss_weighting '{}' is unknown; use none or one_minus_t_sq", weighting);
+  if (control_on.defined()) cm = cm * control_on.to(x1.device(), x1.dtype()).view({B, 1, 1, 1});
+  out.ctrl = ((x1_hat - x1).pow(2) * cm).sum() / (cm.sum() + 1e-8);
+  return out;
 }
 
 // ---------------------------------------------------------------- trainer
@@ -223,11 +259,12 @@ class FlowControlNetTrainer : public Trainable {
     auto x0 = torch::randn(b.joints.sizes()).to(ctx_.device);
     auto t = torch::rand({B}).to(ctx_.device);
     auto drop = (torch::rand({B}) < cfg_.cond_drop).to(ctx_.device);
+    auto control_on = (torch::rand({B}) >= cfg_.control_drop).to(ctx_.device, torch::kFloat32);
     auto cmask = control_mask(b, {});
-    auto parts = losses(b, caps, x0, t, drop, cmask);
+    auto parts = losses(b, caps, x0, t, drop, cmask, control_on);
     LossOutput out;
-    out.loss = parts.first + cfg_.control_loss_weight * parts.second;
-    out.parts = {{"fm", parts.first.detach()}, {"ctrl", parts.second.detach()}};
+    out.loss = parts.fm + cfg_.control_loss_weight * parts.ctrl;
+    out.parts = {{"fm", parts.fm.detach()}, {"ctrl", parts.ctrl.detach()}};
     return out;
   }
 
@@ -252,9 +289,9 @@ class FlowControlNetTrainer : public Trainable {
         auto x0 = torch::randn(b.joints.sizes(), gen, torch::TensorOptions()).to(ctx_.device);
         auto t = torch::full({B}, tv, torch::TensorOptions().device(ctx_.device));
         auto drop = torch::zeros({B}, torch::TensorOptions().dtype(torch::kBool).device(ctx_.device));
-        auto p = losses(b, caps, x0, t, drop, control_mask(b, gen));
-        fm += p.first.item<double>() * B;
-        ctrl += p.second.item<double>() * B;
+        auto p = losses(b, caps, x0, t, drop, control_mask(b, gen), {});
+        fm += p.fm.item<double>() * B;
+        ctrl += p.ctrl.item<double>() * B;
         n += B;
       }
       out[fmt::format("val_fm_t{:.2f}", tv)] = fm / std::max(1.0, n);
@@ -284,24 +321,17 @@ class FlowControlNetTrainer : public Trainable {
         .to(ctx_.device);
   }
 
-  // (flow loss eq. (2)-(3), L2 on controlled entries of the clean estimate), both
-  // masked means. Targets use the base's normaliser (the data's may differ).
-  std::pair<torch::Tensor, torch::Tensor> losses(const MotionBatch& b, const std::vector<std::string>& caps,
-                                                 const torch::Tensor& x0, const torch::Tensor& t,
-                                                 const torch::Tensor& drop, const torch::Tensor& cmask) {
+  // controlnet_losses on a data batch: targets use the base's normaliser (the
+  // data's may differ), dropped texts become the base's null vector.
+  ControlNetLosses losses(const MotionBatch& b, const std::vector<std::string>& caps, const torch::Tensor& x0,
+                          const torch::Tensor& t, const torch::Tensor& drop, const torch::Tensor& cmask,
+                          const torch::Tensor& control_on) {
     const FlowPrior& base = net_.base();
     auto valid = b.mask.view({b.mask.size(0), b.mask.size(1), 1, 1}).to(torch::kFloat32);
     auto x1 = base.normalize(ctx_.data->denormalize(b.joints)) * valid;
-    auto tb = t.view({-1, 1, 1, 1});
-    auto xt = tb * x1 + (1 - tb) * x0;
     auto cond = base.encode_texts(caps);
     cond = torch::where(drop.unsqueeze(1), base.null_texts(cond.size(0)), cond);
-    auto cm = cmask * valid;
-    auto v = net_.raw_velocity(xt, t, cond, b.mask, control_signal(x1, cm));
-    auto fm = ((v - (x1 - x0)).pow(2) * valid).sum() / (valid.sum() * x1.size(2) * 3 + 1e-8);
-    auto x1_hat = xt + (1 - tb) * v;
-    auto ctrl = ((x1_hat - x1).pow(2) * cm).sum() / (cm.sum() + 1e-8);
-    return {fm, ctrl};
+    return controlnet_losses(net_, x1, x0, t, cond, b.mask, cmask, control_on, cfg_.control_loss_weighting);
   }
 
   FlowControlNetConfig cfg_;

@@ -16,7 +16,9 @@ struct FlowControlNetConfig : Config {
   PriorSourceConfig base;  // the finished flow prior it controls (frozen)
   std::vector<int> control_joints = {0, 10, 11, 15, 20, 21};
   double control_loss_weight = 1.0;  // weight of the L2 on controlled entries of the clean estimate
+  std::string control_loss_weighting = "none";  // none: ||x0 + v - x1||^2 (ACMDM); one_minus_t_sq: (1-t)^2 times it
   double cond_drop = 0.1;            // text dropout (the copy sees the null text at CFG's unconditional side)
+  double control_drop = 0.1;         // control dropout: teaches the branch the "no control" pass of the CFG
   int min_controlled_frames = 1;     // controlled frames per sample: log-uniform in [this, clip length]
   std::vector<double> eval_t = {0.1, 0.5, 0.9};
   void visit(FieldVisitor& v) override {
@@ -24,8 +26,16 @@ struct FlowControlNetConfig : Config {
     v("control_joints", control_joints, "each training sample controls one joint drawn from this list",
       each(at_least(0)));
     v("control_loss_weight", control_loss_weight,
-      "weight of the extra L2 loss on the controlled entries of the clean estimate x + (1 - t) v", at_least(0.0));
+      "weight of the extra L2 loss on the controlled entries of the clean estimate", at_least(0.0));
+    v("control_loss_weighting", control_loss_weighting,
+      "clean estimate of the control loss: none = x0 + v with the training noise x0 (ACMDM; the error is "
+      "v - (x1 - x0), equally weighted at every t), one_minus_t_sq = x_t + (1 - t) v (the error is (1 - t) times "
+      "that, so the loss vanishes near t = 1)",
+      one_of({"none", "one_minus_t_sq"}));
     v("cond_drop", cond_drop, "probability of replacing the text by the base's null text", in_range(0.0, 1.0));
+    v("control_drop", control_drop,
+      "probability of switching a sample's control signal off (ACMDM: the CFG's 'text, no control' pass)",
+      in_range(0.0, 1.0));
     v("min_controlled_frames", min_controlled_frames,
       "fewest controlled frames per sample; the count is log-uniform between this and the clip length",
       at_least(1));
@@ -59,11 +69,13 @@ struct FlowControlBranchImpl : torch::nn::Module {
   // Initialises the copied blocks from the base's (the zero linears stay zero).
   void copy_blocks_from(FlowTransformerImpl& base);
   // Velocity of base + branch: h_i = base_i(h_{i-1}) + zero_i(copy_i(hc_{i-1})),
-  // hc_0 = embed(x) + signal_zero(signal_embed(signal)); the base's embedding,
+  // hc_0 = embed(x) + on * signal_zero(signal_embed(signal)); the base's embedding,
   // conditioning and head are used as they are. Arguments as FlowTransformer::forward,
-  // signal [B, T, J, 6] from control_signal().
+  // signal [B, T, J, 6] from control_signal(); control_on [B] (1 = control, 0 = the
+  // branch runs without it, ACMDM's "no control"; undefined = all 1).
   FlowTransformerOutput forward(FlowTransformerImpl& base, const torch::Tensor& x, const torch::Tensor& t,
-                                const torch::Tensor& cond, const torch::Tensor& mask, const torch::Tensor& signal);
+                                const torch::Tensor& cond, const torch::Tensor& mask, const torch::Tensor& signal,
+                                const torch::Tensor& control_on = {});
 
   FlowTransformerOptions opt;
   torch::nn::Sequential signal_embed{nullptr};  // J*6 -> d -> SiLU -> d
@@ -81,13 +93,16 @@ class FlowControlNet {
   // Builds base + freshly initialised branch (zero linears) around a loaded base.
   static FlowControlNet around(FlowPrior base);
 
-  // One controlled network call (text or null text), no guidance.
+  // One network call of base + branch (text or null text), no guidance; control_on
+  // as FlowControlBranchImpl::forward.
   torch::Tensor raw_velocity(const torch::Tensor& x, const torch::Tensor& t, const torch::Tensor& text,
-                             const torch::Tensor& mask, const torch::Tensor& signal) const;
-  // Separate guidance for text and control; "no control" is the frozen base:
-  //   v = v_base(x, null) + s_text (v_base(x, text) - v_base(x, null))
-  //       + s_ctrl (v_ctrl(x, text, signal) - v_base(x, text)).
-  // s_text = 1, s_ctrl = 1 gives the plain controlled velocity. UserError when not finite.
+                             const torch::Tensor& mask, const torch::Tensor& signal,
+                             const torch::Tensor& control_on = {}) const;
+  // ACMDM's three-pass guidance (models/ACMDM_ControlNet.py, forward_with_control):
+  // passes (text, control), (null text, control) and (text, no control), all through
+  // base + branch, combined as
+  //   v = v_tc + (s_text - 1)(v_tc - v_nc) + (s_ctrl - 1)(v_tc - v_t0).
+  // s_text = s_ctrl = 1 gives the plain controlled velocity. UserError when not finite.
   torch::Tensor velocity(const torch::Tensor& x, const torch::Tensor& t, const torch::Tensor& text,
                          const torch::Tensor& mask, const torch::Tensor& signal, double text_cfg,
                          double control_cfg) const;
@@ -101,6 +116,21 @@ class FlowControlNet {
   std::shared_ptr<FlowControlBranch> branch_;
   std::string run_dir_;
 };
+
+// The two training losses of a ControlNet on one batch, masked means in the base's
+// normalised units. x1 [B, T, J, 3] normalised data (zero past each length), x0 the
+// noise, t [B], text [B, C] conditioning (dropout already applied), mask [B, T]
+// valid frames, cmask [B, T, J, 3] controlled entries (the signal is x1 there),
+// control_on [B] as FlowControlBranchImpl::forward (samples with the control off do
+// not count in ctrl). weighting as FlowControlNetConfig::control_loss_weighting.
+struct ControlNetLosses {
+  torch::Tensor fm;    // flow matching: mean ||v - (x1 - x0)||^2 over valid entries
+  torch::Tensor ctrl;  // mean ||x1_hat - x1||^2 over the controlled entries
+};
+ControlNetLosses controlnet_losses(const FlowControlNet& net, const torch::Tensor& x1, const torch::Tensor& x0,
+                                   const torch::Tensor& t, const torch::Tensor& text, const torch::Tensor& mask,
+                                   const torch::Tensor& cmask, const torch::Tensor& control_on,
+                                   const std::string& weighting);
 
 class Trainable;
 // The ControlNet inside a `flow_controlnet` trainer (nullptr for other models): tests

@@ -65,12 +65,14 @@ void ensure_training_data(const TrainJobConfig& job) {
   build_fixture(resolve_data_path(job.data.fixture), {fmt::format("output={}", job.data.path)}, false);
 }
 
+std::string redirected_config(const std::string& file) {
+  if (config_redirects().empty()) return file;
+  auto it = config_redirects().find(canonical_config(file));
+  return it == config_redirects().end() ? file : resolve_data_path(it->second);
+}
+
 TrainResult run_train(const std::string& requested, const std::vector<std::string>& overrides, int64_t stop_after) {
-  std::string file = requested;
-  if (!config_redirects().empty()) {
-    auto it = config_redirects().find(canonical_config(requested));
-    if (it != config_redirects().end()) file = resolve_data_path(it->second);
-  }
+  const std::string file = redirected_config(requested);
   auto job = load_job<TrainJobConfig>(file, overrides);
   ensure_training_data(job);
   std::string name = default_run_name(file, job);

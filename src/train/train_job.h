@@ -31,4 +31,8 @@ std::vector<std::string> take_trained_runs();
 // entry is malformed or a file is missing. An empty list clears the redirects.
 void set_config_redirects(const std::vector<std::string>& from_to, const std::string& what);
 
+// The training config run_train(file) trains under the current redirects: `file`
+// itself, or the resolved path of its redirect target.
+std::string redirected_config(const std::string& file);
+
 }  // namespace mc
