@@ -168,7 +168,10 @@ torch::Tensor FlowControlNet::raw_velocity(const torch::Tensor& x, const torch::
                                            const torch::Tensor& mask, const torch::Tensor& signal,
                                            const torch::Tensor& control_on) const {
   auto tt = t.to(x.device(), torch::kFloat32).reshape({-1}).expand({x.size(0)});
-  return (*branch_)->forward(*base_->net()->transformer, x, tt, text, mask, signal, control_on).velocity;
+  // The branch adds to the base's blocks, so its output is in the base's
+  // parametrisation (velocity or clean endpoint): convert like the base does.
+  return base_->net()->to_velocity(
+      (*branch_)->forward(*base_->net()->transformer, x, tt, text, mask, signal, control_on).velocity, x, tt);
 }
 
 torch::Tensor FlowControlNet::velocity(const torch::Tensor& x, const torch::Tensor& t, const torch::Tensor& text,

@@ -87,11 +87,7 @@ TrainResult run_train(const std::string& requested, const std::vector<std::strin
 }
 
 fs::path run_dir_of(const std::string& requested, const std::vector<std::string>& overrides) {
-  std::string file = requested;
-  if (!config_redirects().empty()) {
-    auto it = config_redirects().find(canonical_config(requested));
-    if (it != config_redirects().end()) file = resolve_data_path(it->second);
-  }
+  const std::string file = redirected_config(requested);
   auto job = load_job<TrainJobConfig>(file, overrides);
   std::string name = job.run.name.empty() ? default_run_name(file, job) : job.run.name;
   return fs::path(job.run.root) / job.run.experiment / name;
