@@ -149,7 +149,7 @@ void ProfileHealth::write(const fs::path& out_dir) const {
     const auto& c = checked_[i];
     if (c.report) {
       std::string r = health_markdown(*c.report);
-      md += "\n## `" + c.run_dir + "`\n\n" + r.substr(r.find('\n') + 1);  // drop the report's own title
+      md += "\n## `" + c.run_dir + "`\n\n" + r.substr(r.find("\n\n") + 2);  // without the report's own title
       std::string j = health_json(*c.report);
       while (!j.empty() && j.back() == '\n') j.pop_back();
       json += j;
