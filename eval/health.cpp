@@ -237,7 +237,7 @@ HealthReport check_health(const HealthOptions& options) {
 
   // ---- evaluator metrics: samples and ground truth against the same reference and texts
   EvalProtocol p = opt.protocol;
-  p.r_precision_pool = std::min<int>(p.r_precision_pool, opt.samples);
+  p.r_precision_pool = std::max(3, std::min<int>(p.r_precision_pool, opt.samples));  // top-3 needs 3
   rep.r_precision_pool = p.r_precision_pool;
   rep.repeats = p.repeats;
   const Embeddings ref_emb = ev.embed_motions(reference, rep.reference);
