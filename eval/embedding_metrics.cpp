@@ -1,5 +1,5 @@
-// T2M embedding metrics: FID, R-precision, matching score, diversity and
-// multimodality (reference-facts §5), plus the portable index draws they use.
+// T2M embedding metrics: FID, KID, R-precision, matching score, diversity and
+// multimodality (reference-facts §5, §6b), plus the portable index draws they use.
 #include <Eigen/Eigenvalues>
 #include <algorithm>
 #include <cmath>
@@ -106,6 +106,29 @@ double fid(const Embeddings& a, const Embeddings& b) {
   if (a.cols() != b.cols()) fail("fid: embedding dimensions differ ({} vs {})", a.cols(), b.cols());
   const GaussianStats ga = gaussian_stats(a), gb = gaussian_stats(b);
   return frechet_distance(ga.mean, ga.cov, gb.mean, gb.cov);
+}
+
+// ---------------------------------------------------------------- KID
+
+// Unbiased MMD^2 (Gretton et al. 2012, eq. 3) with KID's cubic polynomial kernel:
+//   sum_{i != j} k(a_i, a_j) / (m (m - 1)) + sum_{i != j} k(b_i, b_j) / (n (n - 1))
+//   - 2 sum_{i, j} k(a_i, b_j) / (m n).
+// Dropping the diagonal terms k(x_i, x_i) is what removes the bias a plug-in
+// (V-statistic) estimate has at small N.
+double kid(const Embeddings& a, const Embeddings& b) {
+  if (a.rows() < 2 || b.rows() < 2) fail("kid: need at least 2 embeddings per set, got {} and {}", a.rows(), b.rows());
+  if (a.cols() != b.cols()) fail("kid: embedding dimensions differ ({} vs {})", a.cols(), b.cols());
+  if (a.cols() == 0) fail("kid: embeddings have no dimensions");
+  check_finite(a, "kid");
+  check_finite(b, "kid");
+  const double d = static_cast<double>(a.cols());
+  auto kernel = [d](const Embeddings& x, const Embeddings& y) -> Eigen::MatrixXd {
+    return ((x * y.transpose()).array() / d + 1.0).cube().matrix();
+  };
+  const double m = static_cast<double>(a.rows()), n = static_cast<double>(b.rows());
+  const Eigen::MatrixXd kaa = kernel(a, a), kbb = kernel(b, b), kab = kernel(a, b);
+  const double saa = kaa.sum() - kaa.diagonal().sum(), sbb = kbb.sum() - kbb.diagonal().sum();
+  return saa / (m * (m - 1)) + sbb / (n * (n - 1)) - 2.0 * kab.sum() / (m * n);
 }
 
 // ---------------------------------------------------------------- retrieval

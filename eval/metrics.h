@@ -1,6 +1,7 @@
 // Evaluation metrics as plain functions over plain data (Eigen matrices and joint
-// views): T2M embedding metrics, control errors, foot skating, 2D/3D lifting errors,
-// reconstruction MPJPE and replication summaries. Torch-free. See docs/metrics.md.
+// views): T2M embedding metrics and KID, control errors, foot skating, 2D/3D lifting
+// errors, reconstruction MPJPE, motion realism (acceleration, bone-length drift, floor
+// penetration) and replication summaries. Torch-free. See docs/metrics.md.
 #pragma once
 #include <Eigen/Dense>
 #include <cstdint>
@@ -95,6 +96,12 @@ double frechet_distance(const Eigen::VectorXd& mu1, const Eigen::MatrixXd& cov1,
                         const Eigen::VectorXd& mu2, const Eigen::MatrixXd& cov2);
 // Frechet distance of the Gaussians fitted to the two sets (e.g. GT-test vs generated).
 double fid(const Embeddings& a, const Embeddings& b);
+// Kernel distance (KID, Binkowski et al. 2018): the unbiased estimate of the squared
+// MMD between the two sets with the polynomial kernel k(x, y) = (x.y / D + 1)^3, over
+// the whole sets (no subset averaging). Unlike FID it has no small-N bias: its
+// expectation is 0 for two samples of one distribution, so it can be slightly
+// negative. Each set needs >= 2 rows; both the same D.
+double kid(const Embeddings& a, const Embeddings& b);
 
 // Row i of `text` is paired with row i of `motion`. Consecutive pools of `pool`
 // pairs (a final partial pool is dropped, as the T2M evaluator's drop_last loader
@@ -243,7 +250,31 @@ double reconstruction_mpjpe(const std::vector<JointsView>& reconstruction,
                             int root = 0);
 
 // ---------------------------------------------------------------------------
-// 6. Replications
+// 6. Motion realism (evaluator-free; the prior health check, docs/metrics.md)
+// ---------------------------------------------------------------------------
+
+// Mean |acceleration| in m/s^2: per clip, the mean over interior valid frames
+// t = 1..length-2 and all joints of ||x[t+1] - 2 x[t] + x[t-1]|| * fps^2; then the
+// mean over clips. Clips with fewer than 3 valid frames have no interior frame and
+// are skipped; UserError when no clip has one.
+double mean_abs_acceleration(const JointsView& clip, double fps);
+double mean_abs_acceleration(const std::vector<JointsView>& clips, double fps);
+
+// Bone-length drift in millimetres: per clip and bone (joint j to parents[j]), the
+// population standard deviation over valid frames of the bone's length; the mean
+// over bones, then over clips. A rigid skeleton gives 0.
+double bone_length_std_mm(const JointsView& clip, const Skeleton& skeleton);
+double bone_length_std_mm(const std::vector<JointsView>& clips, const Skeleton& skeleton);
+
+struct FloorPenetration {
+  double depth = 0.0;           // metres: mean over clips of max(0, -min over valid frames and toes of y)
+  double frame_fraction = 0.0;  // valid frames (all clips pooled) with some toe strictly below y = 0
+};
+// Toes = skeleton.role("toes"); the floor is the plane y = 0 (Y up).
+FloorPenetration toe_floor_penetration(const std::vector<JointsView>& clips, const Skeleton& skeleton);
+
+// ---------------------------------------------------------------------------
+// 7. Replications
 // ---------------------------------------------------------------------------
 
 struct Replicated {

@@ -28,6 +28,7 @@ struct ProfileConfig : Config {
   std::vector<std::string> trained_configs;  // from=to: training configs swapped for this profile
   std::string runs_root = "runs/experiments";
   std::string results_root = "results";
+  bool health = true;  // prior health of every trained prior the rows use
   void visit(FieldVisitor& v) override {
     v("name", name, "profile name (results/<name>/)");
     v("data", data, "ground-truth motion file: tasks come from its split, FID references it");
@@ -46,6 +47,9 @@ struct ProfileConfig : Config {
       "(e.g. configs/prior/flow_tiny.yaml=configs/prior/flow_standard.yaml)");
     v("runs_root", runs_root, "where row runs and trained components live");
     v("results_root", results_root, "results/<profile>/ goes here");
+    v("health", health,
+      "check every trained prior and tokenizer the rows use (motionctl health): verdicts at the top of each table "
+      "and in results/<profile>/health.md");
   }
 };
 

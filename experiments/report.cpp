@@ -164,6 +164,7 @@ RenderedTable render_table(const TableResult& t) {
   // Markdown
   std::string& md = out.markdown;
   md += fmt::format("### {} — {}\n\n", t.spec.table.id, t.spec.table.title);
+  if (!t.health.empty()) md += t.health + "\n\n";
   if (paper) md += fmt::format("Paper: {} ({}).\n\n", paper->source, paper->file);
   md += "| Method | Source |";
   for (auto& c : cols) md += " " + header_name(c) + " |";

@@ -34,6 +34,7 @@ struct TableResult {
   std::optional<PaperTable> paper;
   std::vector<RowResult> rows;
   double seconds = 0;
+  std::string health;  // Markdown line on the health of the priors its rows used ('' = none checked)
 };
 
 struct RenderedTable {

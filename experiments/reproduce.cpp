@@ -13,6 +13,7 @@
 #include "core/error.h"
 #include "data/skeleton.h"
 #include "experiments/experiment.h"
+#include "experiments/prior_health.h"
 #include "experiments/report.h"
 #include "experiments/row_evaluator.h"
 #include "train/train_job.h"
@@ -90,6 +91,7 @@ ReproduceResult reproduce(const ReproduceOptions& opt) {
   take_trained_runs();
   RowEvaluator ev(pf.profile);
   const std::vector<std::string> evaluator_runs = take_trained_runs();  // its training curve goes in results.h5
+  ProfileHealth health(pf, ev.data());  // every prior the rows use, checked once
   std::vector<TableResult> results;
   for (const auto& spec : specs) {
     auto ts = std::chrono::steady_clock::now();
@@ -126,6 +128,7 @@ ReproduceResult reproduce(const ReproduceOptions& opt) {
         for (double t : r.values["time_per_sample"]) rc.push_back(t / std::max(base, 1e-12));
       }
     }
+    if (pf.profile.health) tr.health = health.table_line(tr);  // before the timing: not the table's cost
     tr.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - ts).count();
     RenderedTable rt = render_table(tr);
     fs::path base = out_dir / spec.table.id;
@@ -138,6 +141,14 @@ ReproduceResult reproduce(const ReproduceOptions& opt) {
   }
   write_results_h5((out_dir / "results.h5").string(), results, pf.profile.name, commit, &ev.data().skeleton,
                    evaluator_runs);
+  if (pf.profile.health) {
+    health.write(out_dir);
+    res.health_file = (out_dir / "health.md").string();
+    for (const auto& c : health.components()) {
+      ++res.priors_checked;
+      res.priors_healthy += c.healthy();
+    }
+  }
   double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   std::vector<ClaimCheck> claims;
   fs::path claims_file = fs::path(resolve_data_path(opt.specs_root)) / "claims.yaml";
@@ -145,6 +156,10 @@ ReproduceResult reproduce(const ReproduceOptions& opt) {
   for (auto& c : claims)
     (c.verdict == "holds" ? res.claims_hold : c.verdict == "does not hold" ? res.claims_fail : res.claims_not_run)++;
   std::string summary = render_summary(claims, results, pf.profile.name, seconds, commit);
+  if (res.priors_checked > 0)
+    summary += fmt::format("\nPrior health ([health.md](health.md)): {} of {} trained priors and tokenizers healthy "
+                           "at N = {}.\n",
+                           res.priors_healthy, res.priors_checked, health.samples());
   if (!res.failures.empty()) {
     summary += "\n## Rows that failed\n\n";
     for (auto& f : res.failures) summary += "- " + f + "\n";

@@ -20,6 +20,8 @@ struct ReproduceResult {
   std::vector<std::string> table_files;  // Markdown per table
   std::vector<std::string> failures;     // "table/row: message"
   int claims_hold = 0, claims_fail = 0, claims_not_run = 0;
+  std::string health_file;             // results/<profile>/health.md
+  int priors_checked = 0, priors_healthy = 0;
 };
 
 // Lists the experiment specs under specs_root (tableN.yaml files outside paper_numbers/), sorted.

@@ -76,45 +76,14 @@ TableSpec load_table_spec(const std::string& file) {
   return spec;
 }
 
-// Composes `file`, applies the profile substitutions whose path exists in it,
-// then `overrides`, and parses the one component under `key`.
+// The component under `key` of `file` with the profile substitutions whose path
+// exists in it, then `overrides` (parse_component_file).
 static std::string resolve_component(const std::string& file, const std::string& key,
                                      const std::vector<std::string>& substitutions,
                                      const std::vector<std::string>& overrides, Component& out) {
   std::string path = resolve_data_path(file);
   if (!fs::exists(path)) fail("{} file '{}' does not exist", key, file);
-  ConfigSource plain = compose_config(path, {});
-  std::vector<std::string> applied;
-  for (const auto& s : substitutions) {
-    auto eq = s.find('=');
-    if (eq == std::string::npos) fail("profile.substitutions entry '{}' is not path=value", s);
-    std::string p = s.substr(0, eq);
-    YAML::Node n = YAML::Clone(*plain.root);
-    bool exists = true;
-    size_t start = 0;
-    while (exists) {
-      size_t dot = p.find('.', start);
-      std::string part = p.substr(start, dot == std::string::npos ? std::string::npos : dot - start);
-      if (!n.IsMap() || !n[part]) {
-        exists = false;
-        break;
-      }
-      n.reset(n[part]);
-      if (dot == std::string::npos) break;
-      start = dot + 1;
-    }
-    if (exists) applied.push_back(s);
-  }
-  for (const auto& o : overrides) applied.push_back(o);
-  struct Wrapper : Config {
-    Component* c;
-    std::string key;
-    void visit(FieldVisitor& v) override { v(key.c_str(), *c, "component"); }
-  } w;
-  w.c = &out;
-  w.key = key;
-  parse_config(compose_config(path, applied), w);
-  return dump_config(w);
+  return parse_component_file(path, key, substitutions, overrides, out);
 }
 
 ResolvedRow resolve_row(const ProfileConfig& profile, const TableSpec& table, const RowConfig& row) {
@@ -150,32 +119,6 @@ struct RowRunKey : Config {
     v("eval", eval, "metric protocol");
   }
 };
-
-static MotionSet to_motion_set(const GeneratedMotions& g, const std::vector<ControlTask>& tasks, const MotionSet& like) {
-  MotionSet m;
-  m.skeleton = like.skeleton;
-  m.fps = like.fps;
-  m.t_max = like.t_max;
-  const int J = like.num_joints();
-  torch::Tensor w = g.world.to(torch::kCPU, torch::kFloat).contiguous();
-  if (w.dim() != 4 || w.size(0) != static_cast<int64_t>(tasks.size()) || w.size(2) != J || w.size(3) != 3)
-    fail("generator returned motions of shape {} for {} tasks of a {}-joint skeleton", (std::ostringstream() << w.sizes()).str(),
-         tasks.size(), J);
-  if (!torch::isfinite(w).all().item<bool>()) fail("generator returned non-finite joints; nothing was written");
-  const int64_t T = std::min<int64_t>(w.size(1), m.t_max);
-  m.joints.assign(tasks.size() * m.clip_stride(), 0.0f);
-  const float* src = w.data_ptr<float>();
-  for (size_t i = 0; i < tasks.size(); ++i) {
-    int len = std::min<int>(g.lengths.at(i), static_cast<int>(T));
-    std::copy(src + i * w.size(1) * J * 3, src + (i * w.size(1) + len) * J * 3, m.clip(i));
-    m.lengths.push_back(len);
-    m.ids.push_back(tasks[i].id);
-    m.splits.push_back("sample");
-    m.captions.push_back({tasks[i].caption});
-  }
-  m.stats = like.stats;
-  return m;
-}
 
 // Frames of an item resolved against T (the compile() rules for camera items: default all).
 static std::vector<int> item_frames(const FrameSelection& f, int T) {
@@ -415,7 +358,7 @@ RowResult run_row(const ProfileFile& pf, const TableSpec& table, const RowConfig
   for (int r = 0; r < key.repeats; ++r) {
     const uint64_t seed = static_cast<uint64_t>(profile.seed) + 1000ull * r;
     GeneratedMotions g = gen->generate(tasks, seed);
-    MotionSet m = to_motion_set(g, tasks, ev.data());
+    MotionSet m = generated_motion_set(g, tasks, ev.data());
     if (r == 0) {
       result.notes = g.notes;
       write_examples((run.path() / "examples.h5").string(), m, tasks, kExamplesPerRow);
@@ -437,7 +380,7 @@ RowResult run_row(const ProfileFile& pf, const TableSpec& table, const RowConfig
         }
       GeneratedMotions gm = gen->generate(mm, seed + 7);
       metrics["multimodality"] =
-          ev.multimodality(to_motion_set(gm, mm, ev.data()), texts, key.mm_generations, pf.protocol.multimodality_pairs,
+          ev.multimodality(generated_motion_set(gm, mm, ev.data()), texts, key.mm_generations, pf.protocol.multimodality_pairs,
                            seed + 7);
     }
     for (auto& [k, v] : metrics) {

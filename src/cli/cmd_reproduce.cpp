@@ -24,6 +24,9 @@ void add_reproduce_command(CLI::App& app) {
     std::cout << fmt::format("summary: {}/summary.md  (claims: {} hold, {} do not hold, {} not run)\n", r.results_dir,
                              r.claims_hold, r.claims_fail, r.claims_not_run);
     std::cout << fmt::format("raw metrics: {}/results.h5\n", r.results_dir);
+    if (r.priors_checked > 0)
+      std::cout << fmt::format("prior health: {} ({} of {} healthy)\n", r.health_file, r.priors_healthy,
+                               r.priors_checked);
     if (!r.failures.empty()) {
       std::cout << fmt::format("{} failures:\n", r.failures.size());
       for (auto& f : r.failures) std::cout << "  " << f << "\n";

@@ -13,4 +13,5 @@ void add_sample_command(CLI::App& app);
 void add_eval_commands(CLI::App& app);  // eval, score
 void add_reproduce_command(CLI::App& app);
 void add_generate_command(CLI::App& app);
+void add_health_command(CLI::App& app);
 }  // namespace mc

@@ -7,6 +7,7 @@
 #include "cli/sample_job.h"
 #include "core/error.h"
 #include "cli/eval_job.h"
+#include "eval/health.h"
 #include "data/fixture/fixture.h"
 #include "train/trainer.h"
 
@@ -19,6 +20,7 @@ const std::vector<JobKind>& job_kinds() {
       {"sample", "sampler", [] { return std::make_unique<SampleJobConfig>(); }},
       {"generate", "generator", [] { return std::make_unique<GenerateJobConfig>(); }},
       {"eval", "protocol", [] { return std::make_unique<EvalJobConfig>(); }},
+      {"health", "targets", [] { return std::make_unique<HealthOptions>(); }},
   };
   return kinds;
 }

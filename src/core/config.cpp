@@ -695,6 +695,43 @@ std::string describe_config(Config& cfg, const std::string& only_section) {
   return out.str();
 }
 
+std::string parse_component_file(const std::string& file, const std::string& key,
+                                 const std::vector<std::string>& substitutions,
+                                 const std::vector<std::string>& overrides, Component& out) {
+  ConfigSource plain = compose_config(file, {});
+  std::vector<std::string> applied;
+  for (const auto& s : substitutions) {
+    auto eq = s.find('=');
+    if (eq == std::string::npos) fail("substitution '{}' is not path=value", s);
+    std::string p = s.substr(0, eq);
+    YAML::Node n = YAML::Clone(*plain.root);
+    bool exists = true;
+    size_t start = 0;
+    while (exists) {
+      size_t dot = p.find('.', start);
+      std::string part = p.substr(start, dot == std::string::npos ? std::string::npos : dot - start);
+      if (!n.IsMap() || !n[part]) {
+        exists = false;
+        break;
+      }
+      n.reset(n[part]);
+      if (dot == std::string::npos) break;
+      start = dot + 1;
+    }
+    if (exists) applied.push_back(s);
+  }
+  for (const auto& o : overrides) applied.push_back(o);
+  struct Wrapper : Config {
+    Component* c;
+    std::string key;
+    void visit(FieldVisitor& v) override { v(key.c_str(), *c, "component"); }
+  } w;
+  w.c = &out;
+  w.key = key;
+  parse_config(compose_config(file, applied), w);
+  return dump_config(w);
+}
+
 bool configs_equal(Config& a, Config& b) { return dump_config(a) == dump_config(b); }
 
 std::string config_hash(Config& cfg) {

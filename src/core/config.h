@@ -172,6 +172,14 @@ T load_job(const std::string& file, const std::vector<std::string>& overrides) {
   return cfg;
 }
 
+// Composes `file`, applies each `substitutions` entry (path=value) whose path exists
+// in the composed file (profile-wide knobs such as generator.sampler.steps that only
+// some files have), then `overrides` (which must fit), and parses the one component
+// under `key` (e.g. "generator") into `out`. Returns the resolved `key:` section as YAML.
+std::string parse_component_file(const std::string& file, const std::string& key,
+                                 const std::vector<std::string>& substitutions,
+                                 const std::vector<std::string>& overrides, Component& out);
+
 // Resolved config as YAML (every field, defaults included); parses back to the same config.
 std::string dump_config(Config& cfg);
 // Human-readable reference of every field (name, type, default, rule, help).

@@ -141,15 +141,22 @@ void RunDir::mark_finished(const std::map<std::string, double>& summary) {
   write_file_atomic(dir_ / "DONE", utc_timestamp() + "\n");
 }
 
-std::map<std::string, double> RunDir::summary() const {
+std::map<std::string, double> RunDir::summary() const { return read_summary_csv(dir_ / "summary.csv"); }
+
+std::map<std::string, double> read_summary_csv(const fs::path& path) {
   std::map<std::string, double> out;
-  if (!fs::exists(dir_ / "summary.csv")) return out;
-  std::istringstream in(read_file(dir_ / "summary.csv"));
+  if (!fs::exists(path)) return out;
+  std::istringstream in(read_file(path));
   std::string line;
   std::getline(in, line);
   while (std::getline(in, line)) {
     auto c = line.find(',');
-    if (c != std::string::npos) out[line.substr(0, c)] = std::stod(line.substr(c + 1));
+    if (c == std::string::npos) continue;
+    try {
+      out[line.substr(0, c)] = std::stod(line.substr(c + 1));
+    } catch (const std::exception&) {
+      fail("{}: row '{}' does not hold a number", path.string(), line);
+    }
   }
   return out;
 }

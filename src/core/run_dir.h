@@ -91,6 +91,10 @@ class RunDir {
   std::shared_ptr<Logger> log_;
 };
 
+// key -> value of a run's summary.csv (what mark_finished wrote); empty when the file
+// is absent, UserError naming it when a row does not parse.
+std::map<std::string, double> read_summary_csv(const fs::path& path);
+
 std::string sanitize_name(const std::string& s);  // safe for a directory name
 std::string utc_timestamp();
 

@@ -11,6 +11,7 @@
 
 #include "control/control_task.h"
 #include "core/config.h"
+#include "data/motion_set.h"
 
 namespace mc {
 
@@ -47,5 +48,11 @@ struct GeneratorConfig : Config {
   static ::mc::ComponentRegistration<CONFIG> mc_generator_registration_##CONFIG("generator", TYPE, HELP)
 
 const GeneratorConfig& as_generator(const Component& c);
+
+// The generated motions as a motion set shaped like `like` (skeleton, fps, t_max,
+// stats): clip i = task i's motion trimmed to its length, split "sample", caption =
+// the task's. UserError on a wrong shape or non-finite joints.
+MotionSet generated_motion_set(const GeneratedMotions& g, const std::vector<ControlTask>& tasks,
+                               const MotionSet& like);
 
 }  // namespace mc

@@ -116,6 +116,15 @@ TEST_CASE("motionctl reproduce: reduced smoke replay of the ProjFlow tables", "[
   }
   REQUIRE(fs::exists(out / "results.h5"));
   REQUIRE(fs::exists(out / "summary.md"));
+  // The prior the rows used is health-checked; every table names its verdict at the top.
+  REQUIRE(fs::exists(out / "health.md"));
+  REQUIRE(fs::exists(out / "health.json"));
+  CHECK(slurp(out / "health.md").find("| flow_prior |") != std::string::npos);
+  for (std::string t : {"table1", "table2", "table3"}) {
+    const std::string md = slurp(out / "projflow" / (t + ".md"));
+    INFO(t);
+    CHECK(md.find("Prior health") < md.find("| Method |"));
+  }
   std::string summary = slurp(out / "summary.md");
   CHECK(summary.find("ProjFlow satisfies every joint's constraints exactly") != std::string::npos);
   CHECK(summary.find("](projflow/table1.md)") != std::string::npos);  // links resolve beside summary.md

@@ -4,6 +4,7 @@
 
 #include "../data/data_test_util.h"
 #include "cli/jobs.h"
+#include "core/error.h"
 #include "data/normalizer.h"
 #include "data/text_vocab.h"
 #include "models/flow_prior.h"
@@ -206,5 +207,5 @@ TEST_CASE("flow prior: clean prediction turns x1_hat into the velocity of the st
   CHECK(e.count("val_x1_t0.90") == 1);
   // A velocity network cannot be trained on the clean error (that loss is its velocity error times 1 - t).
   TrainJobConfig bad;
-  CHECK_THROWS_AS(tiny_flow_trainer(bad, "  prediction: velocity\n  loss: clean\n", true), UserError);
+  CHECK_THROWS_AS(tiny_flow_trainer(bad, "  prediction: velocity\n  loss: clean\n", true), mc::UserError);
 }

@@ -1,0 +1,113 @@
+// Prior health in the table replay: a table whose rows used an unhealthy prior says
+// so at its top (with a link to health.md), components the check does not cover are
+// left out, results/<profile>/health.{md,json} gather the reports, and a later replay
+// reuses RUN_DIR/health.json when the options match.
+#include <catch2/catch.hpp>
+
+#include <fstream>
+
+#include "experiments/prior_health.h"
+#include "experiments/report.h"
+#include "samplers/flow_test_util.h"
+#include "test_util.h"
+
+using namespace mc;
+using namespace mc::test;
+
+TEST_CASE("reproduce's prior health: table tops name the verdict; health.md/json gather the reports", "[health]") {
+  TempDir dir("prior_health");
+  const std::string fx = (dir.path / "fx.h5").string(), runs = (dir.path / "runs").string();
+  REQUIRE(run_motionctl(fmt::format("fixture configs/data/smoke.yaml output={} fixture.num_clips=100", fx)).exit_code ==
+          0);
+  const std::string evaluator = (dir.path / "evaluator.yaml").string();
+  std::ofstream(evaluator)
+      << "run: {experiment: evaluator, name: tiny, seed: 7, log_every: 10, checkpoint_every: 20, threads: 1, root: "
+      << runs << "}\n"
+      << "data: {path: " << fx << ", fixture: '', window: 0}\n"
+      << "model: {type: t2m_evaluator, word_dim: 16, text_hidden: 16, movement_dim: 16, motion_hidden: 16, "
+         "embed_dim: 16, max_words: 24, margin: 10.0, dropout: 0.0}\n"
+      << "optim: {steps: 20, batch_size: 16, lr: 1.0e-3, warmup: 2, schedule: cosine, min_lr_ratio: 0.1, "
+         "grad_clip: 1.0, ema_decay: 0.0}\n";
+  const fs::path prior = dir.path / "prior", adapter = dir.path / "adapter";
+  write_prior_run(prior, "flow_prior", 196);  // random weights: bones are not kept
+  fs::create_directories(adapter);
+  std::ofstream(adapter / "config.yaml") << "model:\n  type: anchorkv_adapter\n";  // not covered: left out
+
+  ProfileFile pf;
+  pf.profile.name = "ci";
+  pf.profile.data = fx;
+  pf.profile.evaluator = evaluator;
+  pf.profile.num_samples = 50;  // more than the 10 test clips: capped to 10 (val has 10 for the floor)
+  pf.profile.repeats = 2;
+  pf.profile.threads = 1;
+  pf.profile.substitutions = {"generator.sampler.steps=3", "generator.opt_steps=2"};
+  const MotionSet data = read_motion_file(fx);
+  ProfileHealth health(pf, data);
+  CHECK(health.samples() == 10);
+
+  TableResult t;
+  t.spec.table.id = "projflow/table9";
+  t.spec.table.title = "a table";
+  t.spec.table.columns = {"fid"};
+  RowConfig rc;
+  rc.id = "row";
+  rc.generator = "experiments/generators/flow.yaml";
+  t.spec.rows = {rc, rc};
+  RowResult a, b;
+  a.row_id = b.row_id = "row";
+  a.label = b.label = "Row";
+  a.values["fid"] = b.values["fid"] = {1.0, 2.0};
+  a.components = {prior.string(), adapter.string()};
+  b.components = {prior.string()};  // the same prior twice: checked once
+  t.rows = {a, b};
+  t.health = health.table_line(t);
+  INFO(t.health);
+  CHECK(t.health.find("**Prior health: NOT healthy** ([health.md](../health.md), N = 10)") == 0);
+  CHECK(t.health.find("(flow_prior) **NOT healthy** (misses ") != std::string::npos);
+  CHECK(t.health.find("bone-length std (mm)") != std::string::npos);
+  CHECK(t.health.find("adapter") == std::string::npos);
+  REQUIRE(health.components().size() == 1);
+  const std::string md = render_table(t).markdown;
+  CHECK(md.find("### projflow/table9 — a table\n\n**Prior health: NOT healthy**") == 0);
+  // The flow generator got the profile's sampling budget (substitution where the path exists).
+  REQUIRE(health.components()[0].report);
+  CHECK(health.components()[0].report->generator.find("3 steps") != std::string::npos);
+
+  // A table without trained priors gets no line.
+  TableResult gt = t;
+  for (auto& r : gt.rows) r.components.clear();
+  CHECK(health.table_line(gt).empty());
+
+  const fs::path out = dir.path / "results";
+  fs::create_directories(out);
+  health.write(out);
+  const std::string hmd = slurp(out / "health.md");
+  CHECK(hmd.find("0 of 1 healthy") != std::string::npos);
+  CHECK(hmd.find(fmt::format("| `{}` | flow_prior | **NOT healthy** |", prior.string())) != std::string::npos);
+  CHECK(hmd.find("| metric | flow_prior | ground truth | ratio | target | pass |") != std::string::npos);
+  CHECK(std::system(fmt::format("'{}' -c 'import json, sys; d = json.load(open(sys.argv[1])); "
+                                "assert d[\"healthy\"] is False and len(d[\"components\"]) == 1' '{}'",
+                                MOTIONCTL_PYTHON, (out / "health.json").string())
+                        .c_str()) == 0);
+
+  // A second replay with the same options reuses RUN_DIR/health.json (no new check);
+  // other options check again.
+  const auto stamp = fs::last_write_time(prior / "health.json");
+  ProfileHealth again(pf, data);
+  CHECK(again.table_line(t) == t.health);
+  CHECK(fs::last_write_time(prior / "health.json") == stamp);
+  pf.profile.seed = 2;
+  ProfileHealth reseeded(pf, data);
+  reseeded.table_line(t);
+  CHECK(fs::last_write_time(prior / "health.json") != stamp);
+
+  // Too little data for N >= 3 with a floor (2 test, 2 val clips): the line says the
+  // check failed, nothing throws.
+  std::vector<size_t> keep = data.indices_of_split("train");
+  for (const char* split : {"test", "val"})
+    for (size_t k = 0; k < 2; ++k) keep.push_back(data.indices_of_split(split)[k]);
+  ProfileHealth none(pf, data.subset(keep));
+  const std::string failed = none.table_line(t);
+  CHECK(failed.find("health check failed: ") != std::string::npos);
+  CHECK(failed.find("fewer than 3 samples") != std::string::npos);
+}
