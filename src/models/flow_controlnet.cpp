@@ -98,7 +98,7 @@ FlowTransformerOutput FlowControlBranchImpl::forward(FlowTransformerImpl& base, 
   auto pos = torch::arange(T, torch::TensorOptions().dtype(torch::kFloat32).device(x.device()));
   auto c = base.conditioning(t.to(x.device()).expand({B}), cond);
   auto key_valid = mask.to(x.device(), torch::kBool);
-  auto h = base.embed(x.reshape({B, T, J * 3}));
+  auto h = base.embed_tokens(x, key_valid);
   auto ctrl = signal_zero(signal_embed->forward(signal.to(x.dtype()).reshape({B, T, J * 6})));
   if (control_on.defined()) {
     TORCH_CHECK(control_on.numel() == B, "control_on needs one entry per sample (", B, "), got ", control_on.numel());
@@ -110,9 +110,7 @@ FlowTransformerOutput FlowControlBranchImpl::forward(FlowTransformerImpl& base, 
     hc = blocks[i]->as<FlowBlockImpl>()->forward(hc, c, key_valid, pos);
     h = h + zero_out[i]->as<nn::Linear>()->forward(hc);
   }
-  auto m = base.final_ada(torch::silu(c)).chunk(2, -1);
-  auto out = base.head(base.final_norm(h) * (1 + m[1].unsqueeze(1)) + m[0].unsqueeze(1));
-  return {out.view({B, T, J, 3})};
+  return {base.output(h, c, key_valid)};
 }
 
 // ---------------------------------------------------------------- runtime

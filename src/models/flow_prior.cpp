@@ -22,6 +22,7 @@ std::string FlowPriorConfig::validate() const {
   if (text_width % text_heads != 0)
     return fmt::format("text_width {} is not a multiple of text_heads {}", text_width, text_heads);
   if (eval_t.empty()) return "eval_t needs at least one flow time";
+  if (temporal_kernel % 2 == 0) return fmt::format("temporal_kernel {} must be odd (centred on its frame)", temporal_kernel);
   if (prediction == "velocity" && loss == "clean")
     return "loss: clean needs prediction: clean (a velocity network's clean error is its velocity error times 1 - t)";
   return "";
@@ -36,6 +37,7 @@ FlowTransformerOptions FlowPriorConfig::transformer_options(int num_joints) cons
   o.mlp_hidden = mlp_hidden;
   o.dropout = dropout;
   o.cond_dim = text_width;
+  o.temporal_kernel = temporal_kernel;
   return o;
 }
 
@@ -96,13 +98,12 @@ FlowPriorNetImpl::FlowPriorNetImpl(int vocab_size, int num_joints, const FlowPri
   joint_mean = register_buffer("joint_mean", torch::zeros({3}));
   joint_std = register_buffer("joint_std", torch::ones({3}));
   clean_prediction = c.prediction == "clean";
-  clean_eps = c.clean_eps;
 }
 
 torch::Tensor FlowPriorNetImpl::to_velocity(const torch::Tensor& out, const torch::Tensor& x,
                                             const torch::Tensor& t) const {
   if (!clean_prediction) return out;
-  auto gap = (1 - t.to(x.device(), x.scalar_type())).clamp_min(clean_eps).view({-1, 1, 1, 1});
+  auto gap = (1 - t.to(x.device(), x.scalar_type())).clamp_min(1e-6).view({-1, 1, 1, 1});
   return (out - x) / gap;
 }
 
@@ -206,7 +207,7 @@ class FlowPriorTrainer : public Trainable {
     for (int64_t i : idx) {
       const double L = std::min<int64_t>(ctx_.data->length(i), ctx_.window > 0 ? ctx_.window : INT64_MAX);
       const double per_token_block = 8 * d * d + 6 * d * h + 4 * L * d;
-      fwd += L * (o.depth * per_token_block + 4 * io * d);               // blocks, embed + head
+      fwd += L * (o.depth * per_token_block + 4 * io * d * o.temporal_kernel);  // blocks, embed + head
       fwd += 2 * d * (o.depth * 6 * d + 2 * d) + 2 * 2 * d * d;           // AdaLN per clip, t_mlp
       fwd += w * cfg_.text_layers * (8 * dt * dt + 4 * dt * ff + 4 * w * dt) + 2 * dt * dt;  // text encoder
     }
@@ -248,12 +249,22 @@ class FlowPriorTrainer : public Trainable {
     // exactly the velocity error where 1 - t >= eps, and no target that pushes
     // x1_hat past x1 where the floor bites.
     auto v_err = [&] {
-      if (!net_->clean_prediction) return mse(out - (x1 - x0));
-      return mse((out - x1) / (1 - t).clamp_min(cfg_.clean_eps).view({-1, 1, 1, 1}));
+      if (!net_->clean_prediction) return out - (x1 - x0);
+      return (out - x1) / (1 - t).clamp_min(cfg_.clean_eps).view({-1, 1, 1, 1});
     };
-    auto x_err = [&] { return mse(net_->to_clean(out, xt, t) - x1); };
-    if (space == "both") return {v_err(), x_err()};
-    return {space == "clean" ? x_err() : v_err()};
+    auto x_err = [&] { return net_->to_clean(out, xt, t) - x1; };
+    if (space == "both") return {mse(v_err()), mse(x_err())};
+    auto err = space == "clean" ? x_err() : v_err();
+    auto loss = mse(err);
+    if (cfg_.smooth_weight > 0 && err.size(1) > 1) {
+      // Frame-to-frame differences of the error on pairs of valid frames: white
+      // (jitter) error counts up to 4x, a slow offset hardly at all.
+      const int64_t T = err.size(1);
+      auto d = err.narrow(1, 1, T - 1) - err.narrow(1, 0, T - 1);
+      auto pm = m.narrow(1, 1, T - 1) * m.narrow(1, 0, T - 1);
+      loss = loss + cfg_.smooth_weight * (d.pow(2) * pm).sum() / (pm.sum() * x1.size(2) * 3 + 1e-8);
+    }
+    return {loss};
   }
 
   FlowPriorConfig cfg_;

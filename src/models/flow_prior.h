@@ -28,11 +28,16 @@ struct FlowPriorConfig : Config {
   std::vector<double> eval_t = {0.1, 0.3, 0.5, 0.7, 0.9};
   // What the network outputs. velocity: v = x1 - x0 (ACMDM). clean: the clean
   // endpoint x1 (x-prediction, as later absolute-coordinate flows use); the
-  // velocity is then (x1_hat - x_t) / max(1 - t, clean_eps), so every sampler is
-  // unchanged. loss: which error is averaged, velocity (eq. (3)) or clean.
+  // velocity is then (x1_hat - x_t) / (1 - t), so every sampler is unchanged and
+  // its last step lands on x1_hat. loss: which error is averaged, velocity
+  // (eq. (3); a clean network's is its clean error over max(1 - t, clean_eps)) or
+  // clean. smooth_weight adds that error's frame-to-frame differences (a
+  // frequency-weighted MSE that penalises jitter, like MDM's velocity loss).
   std::string prediction = "velocity";
   std::string loss = "velocity";
   double clean_eps = 0.05;
+  double smooth_weight = 0.0;
+  int temporal_kernel = 1;
   void visit(FieldVisitor& v) override {
     v("depth", depth, "transformer blocks L", in_range(1, 64));
     v("width", width, "hidden size d (0 = 64 * depth)", at_least(0));
@@ -51,8 +56,12 @@ struct FlowPriorConfig : Config {
     v("prediction", prediction, "network output: velocity (x1 - x0, ACMDM) or clean (the endpoint x1)",
       one_of({"velocity", "clean"}));
     v("loss", loss, "training error: velocity (eq. (3)) or clean (||x1_hat - x1||^2)", one_of({"velocity", "clean"}));
-    v("clean_eps", clean_eps, "clean prediction: floor of 1 - t when turning x1_hat into a velocity",
+    v("clean_eps", clean_eps, "clean prediction, velocity loss: floor of 1 - t in the loss weight 1/(1 - t)^2",
       in_range(1e-4, 0.5));
+    v("smooth_weight", smooth_weight,
+      "weight of the loss on frame-to-frame differences of the error (0 = off, ACMDM)", in_range(0.0, 100.0));
+    v("temporal_kernel", temporal_kernel,
+      "frames the input embedding and output head see (odd; 1 = ACMDM's per-frame PS22 Linear)", in_range(1, 31));
   }
   std::string validate() const override;
   FlowTransformerOptions transformer_options(int num_joints) const;
@@ -85,12 +94,11 @@ struct FlowPriorNetImpl : torch::nn::Module {
   // The null condition broadcast to [B, text_width].
   torch::Tensor null_condition(int64_t B) const;
   // The velocity the network's output `out` stands for at (x, t) (t [B]), and the
-  // clean endpoint it implies: identity / (out - x)/(1 - t) for velocity networks,
-  // (out - x)/max(1 - t, eps) / identity for clean ones.
+  // clean endpoint it implies: identity / x + (1 - t) out for velocity networks,
+  // (out - x)/(1 - t) / identity for clean ones (samplers never ask at t = 1).
   torch::Tensor to_velocity(const torch::Tensor& out, const torch::Tensor& x, const torch::Tensor& t) const;
   torch::Tensor to_clean(const torch::Tensor& out, const torch::Tensor& x, const torch::Tensor& t) const;
   bool clean_prediction = false;
-  double clean_eps = 0.05;
   FlowTextEncoder text{nullptr};
   FlowTransformer transformer{nullptr};
   torch::Tensor null_text;             // [text_width] parameter

@@ -120,14 +120,22 @@ torch::Tensor FlowBlockImpl::forward(const torch::Tensor& x, const torch::Tensor
 
 FlowTransformerImpl::FlowTransformerImpl(const FlowTransformerOptions& o) : opt(o) {
   const int64_t d = o.width, io = o.num_joints * 3;
-  embed = register_module("embed", nn::Linear(io, d));
+  TORCH_CHECK(o.temporal_kernel >= 1 && o.temporal_kernel % 2 == 1, "temporal_kernel must be odd, got ",
+              o.temporal_kernel);
+  const int64_t k = o.temporal_kernel;
+  if (k == 1) {
+    embed = register_module("embed", nn::Linear(io, d));
+  } else {
+    embed_conv = register_module("embed_conv", nn::Conv1d(nn::Conv1dOptions(io, d, k).padding(k / 2)));
+    head_conv = register_module("head_conv", nn::Conv1d(nn::Conv1dOptions(d, io, k).padding(k / 2)));
+  }
   t_mlp = register_module("t_mlp", nn::Sequential(nn::Linear(o.freq_dim, d), nn::SiLU(), nn::Linear(d, d)));
   cond_proj = register_module("cond_proj", nn::Linear(o.cond_dim, d));
   blocks = register_module("blocks", nn::ModuleList());
   for (int64_t i = 0; i < o.depth; ++i) blocks->push_back(FlowBlock(o));
   final_norm = register_module("final_norm", RMSNorm(d, false));
   final_ada = register_module("final_ada", nn::Linear(d, 2 * d));
-  head = register_module("head", nn::Linear(d, io));
+  if (k == 1) head = register_module("head", nn::Linear(d, io));
 
   // DiT initialisation: xavier linears with zero bias, N(0, 0.02) timestep MLP,
   // zero modulations and output head so the initial network outputs exactly 0.
@@ -144,10 +152,39 @@ FlowTransformerImpl::FlowTransformerImpl(const FlowTransformerOptions& o) : opt(
     nn::init::zeros_(blk->ada->weight);
     nn::init::zeros_(blk->ada->bias);
   }
-  for (auto* lin : {final_ada.get(), head.get()}) {
-    nn::init::zeros_(lin->weight);
-    nn::init::zeros_(lin->bias);
+  nn::init::zeros_(final_ada->weight);
+  nn::init::zeros_(final_ada->bias);
+  if (head) {
+    nn::init::zeros_(head->weight);
+    nn::init::zeros_(head->bias);
+  } else {
+    nn::init::xavier_uniform_(embed_conv->weight);
+    nn::init::zeros_(embed_conv->bias);
+    nn::init::zeros_(head_conv->weight);
+    nn::init::zeros_(head_conv->bias);
   }
+}
+
+torch::Tensor FlowTransformerImpl::embed_tokens(const torch::Tensor& x, const torch::Tensor& valid) {
+  const int64_t B = x.size(0), T = x.size(1), J = x.size(2);
+  auto flat = x.reshape({B, T, J * 3});
+  if (embed) return embed(flat);
+  flat = flat * valid.unsqueeze(-1).to(flat.dtype());
+  return embed_conv(flat.transpose(1, 2)).transpose(1, 2);
+}
+
+torch::Tensor FlowTransformerImpl::output(const torch::Tensor& h, const torch::Tensor& c, const torch::Tensor& valid) {
+  const int64_t B = h.size(0), T = h.size(1);
+  auto m = final_ada(torch::silu(c)).chunk(2, -1);
+  auto z = modulate(final_norm(h), m[0], m[1]);
+  torch::Tensor out;
+  if (head) {
+    out = head(z);
+  } else {
+    z = z * valid.unsqueeze(-1).to(z.dtype());
+    out = head_conv(z.transpose(1, 2)).transpose(1, 2);
+  }
+  return out.reshape({B, T, opt.num_joints, 3});
 }
 
 torch::Tensor FlowTransformerImpl::conditioning(const torch::Tensor& t, const torch::Tensor& cond) {
@@ -165,11 +202,9 @@ FlowTransformerOutput FlowTransformerImpl::forward(const torch::Tensor& x, const
                                  : torch::arange(T, torch::TensorOptions().dtype(torch::kFloat32).device(x.device()));
   auto c = conditioning(t.to(x.device()).expand({B}), cond);
   auto key_valid = mask.to(x.device(), torch::kBool);
-  auto h = embed(x.reshape({B, T, J * 3}));
+  auto h = embed_tokens(x, key_valid);
   for (auto& b : *blocks) h = b->as<FlowBlockImpl>()->forward(h, c, key_valid, pos);
-  auto m = final_ada(torch::silu(c)).chunk(2, -1);
-  auto out = head(modulate(final_norm(h), m[0], m[1]));
-  return {out.view({B, T, J, 3})};
+  return {output(h, c, key_valid)};
 }
 
 }  // namespace mc

@@ -37,6 +37,11 @@ struct FlowTransformerOptions {
   int64_t freq_dim = 256;    // sinusoidal timestep features
   double time_scale = 1000;  // t in [0, 1] is scaled before the sinusoid so its frequencies resolve it
   double rope_base = 10000;
+  // Frames the input embedding and the output head see (odd). 1 = ACMDM's
+  // per-frame Linear (PS22); k > 1 = a temporal convolution over k frames, which
+  // lets the first and last layers compare neighbouring frames (noise is white in
+  // time, motion is not) at a cost of k x those two layers.
+  int64_t temporal_kernel = 1;
   int64_t resolved_mlp_hidden() const;
 };
 
@@ -93,6 +98,11 @@ struct FlowTransformerImpl : torch::nn::Module {
                                 const torch::Tensor& mask, const torch::Tensor& positions = {});
   // The AdaLN conditioning vector c = MLP(sinusoid(t)) + Linear(cond), [B, d].
   torch::Tensor conditioning(const torch::Tensor& t, const torch::Tensor& cond);
+  // Tokens [B, T, d] of x [B, T, J, 3]; padded frames are zeroed first so a
+  // temporal kernel never reads them. valid [B, T] bool.
+  torch::Tensor embed_tokens(const torch::Tensor& x, const torch::Tensor& valid);
+  // The output [B, T, J, 3] of the last hidden states h [B, T, d] under condition c.
+  torch::Tensor output(const torch::Tensor& h, const torch::Tensor& c, const torch::Tensor& valid);
 
   FlowTransformerOptions opt;
   torch::nn::Linear embed{nullptr};                       // J*3 -> d
@@ -102,6 +112,7 @@ struct FlowTransformerImpl : torch::nn::Module {
   RMSNorm final_norm{nullptr};
   torch::nn::Linear final_ada{nullptr};                   // d -> 2d, zero-init
   torch::nn::Linear head{nullptr};                        // d -> J*3, zero-init
+  torch::nn::Conv1d embed_conv{nullptr}, head_conv{nullptr};  // temporal_kernel > 1 in place of embed / head
 };
 TORCH_MODULE(FlowTransformer);
 
