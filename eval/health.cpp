@@ -129,10 +129,19 @@ std::string default_evaluator_config(const std::string& data_path) {
     }
   std::sort(files.begin(), files.end());
   const std::string want = same_path(resolve_data_path(data_path));
+  // Several evaluators may train on the same data (standard and paper sizes): the
+  // one with the fewest training steps is the default (--evaluator picks another).
+  std::string best;
+  int best_steps = 0;
   for (const auto& f : files) {
     TrainJobConfig job = load_job<TrainJobConfig>(f.string(), {});
-    if (same_path(resolve_data_path(job.data.path)) == want) return f.string();
+    if (same_path(resolve_data_path(job.data.path)) != want) continue;
+    if (best.empty() || job.optim.steps < best_steps) {
+      best = f.string();
+      best_steps = job.optim.steps;
+    }
   }
+  if (!best.empty()) return best;
   fail("no evaluator config in {} trains on '{}' (the data being checked); pass --evaluator CFG", dir.string(),
        data_path);
 }

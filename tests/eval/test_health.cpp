@@ -9,6 +9,7 @@
 
 #include "core/error.h"
 #include "eval/health.h"
+#include "eval/health_test_util.h"
 #include "samplers/flow_test_util.h"
 #include "test_util.h"
 #include "train/train_job.h"
@@ -28,14 +29,7 @@ struct HealthBed {
     auto r = run_motionctl(fmt::format("fixture configs/data/smoke.yaml output={} fixture.num_clips={}", fx, clips));
     if (r.exit_code != 0) throw std::runtime_error(r.output);
     evaluator = (dir.path / "evaluator.yaml").string();
-    std::ofstream ev(evaluator);
-    ev << "run: {experiment: evaluator, name: tiny, seed: 7, log_every: 10, checkpoint_every: 20, threads: 1, root: "
-       << runs << "}\n"
-       << "data: {path: " << fx << ", fixture: '', window: 0}\n"
-       << "model: {type: t2m_evaluator, word_dim: 16, text_hidden: 16, movement_dim: 16, motion_hidden: 16, "
-          "embed_dim: 16, max_words: 24, margin: 10.0, dropout: 0.0}\n"
-       << "optim: {steps: 20, batch_size: 16, lr: 1.0e-3, warmup: 2, schedule: cosine, min_lr_ratio: 0.1, "
-          "grad_clip: 1.0, ema_decay: 0.0}\n";
+    write_tiny_evaluator_config(evaluator, fx, runs);
   }
   // Command-line options shared by every check of the bed.
   std::string common(int samples = 8) const {

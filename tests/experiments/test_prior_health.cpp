@@ -6,6 +6,7 @@
 
 #include <fstream>
 
+#include "eval/health_test_util.h"
 #include "experiments/prior_health.h"
 #include "experiments/report.h"
 #include "samplers/flow_test_util.h"
@@ -20,14 +21,7 @@ TEST_CASE("reproduce's prior health: table tops name the verdict; health.md/json
   REQUIRE(run_motionctl(fmt::format("fixture configs/data/smoke.yaml output={} fixture.num_clips=100", fx)).exit_code ==
           0);
   const std::string evaluator = (dir.path / "evaluator.yaml").string();
-  std::ofstream(evaluator)
-      << "run: {experiment: evaluator, name: tiny, seed: 7, log_every: 10, checkpoint_every: 20, threads: 1, root: "
-      << runs << "}\n"
-      << "data: {path: " << fx << ", fixture: '', window: 0}\n"
-      << "model: {type: t2m_evaluator, word_dim: 16, text_hidden: 16, movement_dim: 16, motion_hidden: 16, "
-         "embed_dim: 16, max_words: 24, margin: 10.0, dropout: 0.0}\n"
-      << "optim: {steps: 20, batch_size: 16, lr: 1.0e-3, warmup: 2, schedule: cosine, min_lr_ratio: 0.1, "
-         "grad_clip: 1.0, ema_decay: 0.0}\n";
+  write_tiny_evaluator_config(evaluator, fx, runs);
   const fs::path prior = dir.path / "prior", adapter = dir.path / "adapter";
   write_prior_run(prior, "flow_prior", 196);  // random weights: bones are not kept
   fs::create_directories(adapter);
