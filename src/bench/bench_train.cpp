@@ -34,9 +34,7 @@ StepTiming time_steps(const std::string& config, const std::vector<std::string>&
   auto params = trainable->trainable_parameters();
   StepTiming r;
   for (auto& p : params) r.params += p.numel();
-  torch::optim::AdamW opt(params, torch::optim::AdamWOptions(job.optim.lr)
-                                      .betas({job.optim.betas[0], job.optim.betas[1]})
-                                      .weight_decay(job.optim.weight_decay));
+  torch::optim::AdamW opt = make_optimizer(job.optim, params);
   EpochSampler sampler = make_sampler(job, *data);
   using clock = std::chrono::steady_clock;
   for (int s = 0; s < warmup + steps; ++s) {
@@ -65,10 +63,9 @@ void bench_train(const TrainBenchOptions& o, std::ostream& out) {
   std::vector<std::string> overrides = o.overrides;
   if (o.threads > 0) overrides.push_back(fmt::format("run.threads={}", o.threads));
   auto job = load_job<TrainJobConfig>(o.config, overrides);
-  const int threads = job.run.threads > 0 ? job.run.threads : 0;
   StepTiming as_is = time_steps(o.config, overrides, o.warmup, o.steps);
-  const int used_threads = torch::get_num_threads();
-  BlasBenchResult blas = bench_sgemm(threads > 0 ? threads : used_threads);
+  const int used_threads = torch::get_num_threads();  // what setup_torch chose for the run
+  BlasBenchResult blas = bench_sgemm(used_threads);
   out << fmt::format("bench train {} ({}; {} trainable parameters; batch {}; {} thread(s); sgemm {:.1f} GFLOP/s)\n",
                      o.config, job.model.type, as_is.params, job.optim.batch_size, used_threads, blas.gflops);
   out << "| variant | frames/clip | s/step | data s/step | GFLOP/step (valid frames) | GFLOP/s | of sgemm |\n"

@@ -30,6 +30,11 @@ std::unique_ptr<Trainable> make_trainable(const Component& model, const TrainCon
 
 // ---------------------------------------------------------------- schedule
 
+torch::optim::AdamW make_optimizer(const OptimConfig& o, const std::vector<torch::Tensor>& params) {
+  return torch::optim::AdamW(
+      params, torch::optim::AdamWOptions(o.lr).betas({o.betas[0], o.betas[1]}).weight_decay(o.weight_decay));
+}
+
 double scheduled_lr(const OptimConfig& o, int64_t step) {
   if (o.warmup > 0 && step < o.warmup) return o.lr * static_cast<double>(step + 1) / o.warmup;
   if (o.schedule == "constant") return o.lr;
@@ -228,9 +233,7 @@ TrainResult train(TrainJobConfig& job, const std::vector<std::string>& overrides
   int64_t n_params = 0;
   for (auto& p : params) n_params += p.numel();
 
-  torch::optim::AdamW opt(params, torch::optim::AdamWOptions(job.optim.lr)
-                                      .betas({job.optim.betas[0], job.optim.betas[1]})
-                                      .weight_decay(job.optim.weight_decay));
+  torch::optim::AdamW opt = make_optimizer(job.optim, params);
   std::vector<torch::Tensor> ema;
   if (job.optim.ema_decay > 0)
     for (auto& p : params) ema.push_back(p.detach().clone());

@@ -45,6 +45,10 @@ struct OptimConfig : Config {
   }
 };
 
+// The AdamW optimiser of `o` (lr, betas, weight decay) over `params`: the one
+// training and `bench train` step with.
+torch::optim::AdamW make_optimizer(const OptimConfig& o, const std::vector<torch::Tensor>& params);
+
 // Learning rate at `step` (0-based): a pure function so resume needs no state.
 double scheduled_lr(const OptimConfig& o, int64_t step);
 
