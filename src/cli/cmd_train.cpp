@@ -23,14 +23,17 @@ void add_train_command(CLI::App& app) {
   struct Args {
     std::string file;
     std::vector<std::string> overrides;
-    int64_t stop_after = 0;
+    TrainLoopOptions loop;
   };
   auto a = std::make_shared<Args>();
   cmd->add_option("config", a->file, "config file, e.g. configs/train/autoencoder_smoke.yaml")->required();
   cmd->add_option("overrides", a->overrides, "key.path=value overrides (run.force=true redoes a finished run)");
-  cmd->add_option("--stop-after", a->stop_after, "stop after N steps without finishing (resume later)");
+  cmd->add_option("--stop-after", a->loop.stop_after, "stop after N steps without finishing (resume later)");
+  cmd->add_option("--snapshot-every", a->loop.snapshot_every,
+                  "also save the final weights every N steps to checkpoints/snapshot_NNNNNN.pt (for "
+                  "tools/health_curve.sh); does not change the run's name");
   cmd->callback([a] {
-    TrainResult r = run_train(a->file, a->overrides, a->stop_after);
+    TrainResult r = run_train(a->file, a->overrides, a->loop);
     std::cout << "run: " << r.run_dir.string() << (r.skipped ? " (already finished)" : "") << "\n";
     for (auto& [k, v] : r.summary) std::cout << fmt::format("  {} = {:.6g}\n", k, v);
   });
@@ -109,7 +112,7 @@ void add_sweep_command(CLI::App& app) {
       std::string run_name = fmt::format("{}-{}", stem_of(a->file), tag.empty() ? "base" : tag);
       overrides.push_back("run.name=" + sanitize_name(run_name));
       std::cout << fmt::format("[{}/{}] {}\n", i + 1, combos.size(), fmt::join(combos[i], " ")) << std::flush;
-      TrainResult r = run_train(a->file, overrides, 0);
+      TrainResult r = run_train(a->file, overrides);
       std::cout << "  run: " << r.run_dir.string() << (r.skipped ? " (already finished)" : "") << "\n";
       rows.push_back(r.summary);
       for (auto& [k, _] : r.summary) metric_names.insert(k);

@@ -71,7 +71,7 @@ std::string redirected_config(const std::string& file) {
   return it == config_redirects().end() ? file : resolve_data_path(it->second);
 }
 
-TrainResult run_train(const std::string& requested, const std::vector<std::string>& overrides, int64_t stop_after) {
+TrainResult run_train(const std::string& requested, const std::vector<std::string>& overrides, const TrainLoopOptions& loop) {
   const std::string file = redirected_config(requested);
   auto job = load_job<TrainJobConfig>(file, overrides);
   ensure_training_data(job);
@@ -79,7 +79,7 @@ TrainResult run_train(const std::string& requested, const std::vector<std::strin
   // A component shipped in pretrained/ under this very name is installed, not retrained.
   if (!job.run.force && job.run.name.empty())
     install_pretrained(job.run.experiment, name, fs::path(job.run.root) / job.run.experiment / name, &std::cerr);
-  TrainResult r = train(job, overrides, name, stop_after);
+  TrainResult r = train(job, overrides, name, loop);
   auto& used = trained_runs_registry();
   const std::string dir = r.run_dir.string();
   if (std::find(used.begin(), used.end(), dir) == used.end()) used.push_back(dir);

@@ -11,7 +11,7 @@
 namespace mc {
 
 TrainResult run_train(const std::string& config_file, const std::vector<std::string>& overrides,
-                      int64_t stop_after = 0);
+                      const TrainLoopOptions& loop = {});
 
 // The run directory run_train(config, overrides) trains or reuses (no training).
 std::filesystem::path run_dir_of(const std::string& config_file, const std::vector<std::string>& overrides);

@@ -211,7 +211,8 @@ std::string format_eta(double seconds) {
 // ---------------------------------------------------------------- loop
 
 TrainResult train(TrainJobConfig& job, const std::vector<std::string>& overrides, const std::string& default_name,
-                  int64_t stop_after) {
+                  const TrainLoopOptions& loop) {
+  const int64_t stop_after = loop.stop_after;
   if (job.run.checkpoint_every % job.run.log_every != 0)
     fail("run.checkpoint_every ({}) must be a multiple of run.log_every ({}) so checkpoints fall on logged steps",
          job.run.checkpoint_every, job.run.log_every);
@@ -302,6 +303,21 @@ TrainResult train(TrainJobConfig& job, const std::vector<std::string>& overrides
     if (st.step % job.run.checkpoint_every == 0 || last_step) {
       LoopState snap{st.step, wall_now()};
       save_checkpoint(last, *trainable, opt, ema, snap, sampler);
+    }
+    if (loop.snapshot_every > 0 && st.step % loop.snapshot_every == 0 && !last_step) {
+      // The weights final.pt would hold now: EMA swapped in, saved, swapped back.
+      torch::NoGradGuard ng;
+      std::vector<torch::Tensor> live;
+      for (size_t i = 0; i < ema.size(); ++i) {
+        live.push_back(params[i].detach().clone());
+        params[i].copy_(ema[i]);
+      }
+      torch::serialize::OutputArchive ar;
+      trainable->module().save(ar);
+      AtomicOutput out(run.checkpoints() / fmt::format("snapshot_{:06d}.pt", st.step));
+      ar.save_to(out.tmp_path().string());
+      out.commit();
+      for (size_t i = 0; i < live.size(); ++i) params[i].copy_(live[i]);
     }
     if (stop_after > 0 && st.step - first_step >= stop_after && !last_step) {
       run.log().info(fmt::format("stopping at step {} as asked (resume by running again)", st.step));

@@ -99,10 +99,21 @@ EpochSampler make_sampler(const TrainJobConfig& job, const MotionDataset& data);
 // Applies run.threads/device/seed; returns the device.
 torch::Device setup_torch(const RunConfig& run);
 
+// How one invocation drives the loop. Not part of the config (and of the run's
+// name): they change what is observed, never what is trained.
+struct TrainLoopOptions {
+  // > 0: stop (without finishing) after that many steps of this invocation;
+  // running again resumes. Used by tests of resume and to split long trainings.
+  int64_t stop_after = 0;
+  // > 0: every that many steps also write the weights a finished run would hold
+  // at that step (the EMA copy when there is one) to checkpoints/snapshot_NNNNNN.pt,
+  // in final.pt's format, for curves of health against training time.
+  int64_t snapshot_every = 0;
+};
+
 // Trains (or resumes, or skips) the run described by `job`. `default_name` names
-// the run directory when run.name is empty. `stop_after` > 0 stops (without
-// finishing) after that many steps of this invocation: used by tests of resume.
+// the run directory when run.name is empty.
 TrainResult train(TrainJobConfig& job, const std::vector<std::string>& overrides, const std::string& default_name,
-                  int64_t stop_after = 0);
+                  const TrainLoopOptions& loop = {});
 
 }  // namespace mc

@@ -303,7 +303,7 @@ TEST_CASE("tokenizer training resumes exactly: codebook buffers and reset draws 
   auto [ja, ova] = job_for((t.path / "a").string());
   auto ra = train(*ja, ova, "r");
   auto [jb, ovb] = job_for((t.path / "b").string());
-  auto first = train(*jb, ovb, "r", 15);  // stops at step 15; last.pt holds step 10
+  auto first = train(*jb, ovb, "r", TrainLoopOptions{15});  // stops at step 15; last.pt holds step 10
   REQUIRE_FALSE(fs::exists(first.run_dir / "DONE"));
   auto [jc, ovc] = job_for((t.path / "b").string());
   auto rb = train(*jc, ovc, "r");

@@ -200,3 +200,57 @@ TEST_CASE("length buckets: every clip once per epoch, similar lengths per batch,
   resumed.restore(again.epoch(), again.pos());
   CHECK(resumed.next(8) == again.next(8));
 }
+
+// Every tensor of a checkpoint archive by name (the archive's bytes also hold its
+// temporary file name, so files are compared tensor by tensor).
+static void read_archive(torch::serialize::InputArchive& ar, const std::string& prefix,
+                         std::map<std::string, torch::Tensor>& out) {
+  for (const auto& k : ar.keys()) {
+    torch::Tensor v;
+    torch::serialize::InputArchive sub;
+    if (ar.try_read(k, v))
+      out[prefix + k] = v;
+    else if (ar.try_read(k, sub))
+      read_archive(sub, prefix + k + ".", out);
+  }
+}
+static std::map<std::string, torch::Tensor> archive_tensors(const fs::path& file) {
+  torch::serialize::InputArchive ar;
+  ar.load_from(file.string());
+  std::map<std::string, torch::Tensor> out;
+  read_archive(ar, "", out);
+  return out;
+}
+
+TEST_CASE("snapshots hold the weights of each step without changing the run", "[train]") {
+  TempDir t("snap");
+  std::string data = (t.path / "fx.h5").string();
+  REQUIRE(run_motionctl(fmt::format("fixture configs/data/smoke.yaml output={} fixture.num_clips=40", data)).exit_code ==
+          0);
+  auto train_run = [&](const std::string& name, const std::string& extra) {
+    auto r = run_motionctl(fmt::format(
+        "train configs/train/autoencoder_smoke.yaml data.path={} optim.steps=40 run.log_every=10 "
+        "run.checkpoint_every=20 run.root={} run.name={} run.seed=3 run.threads=1 {}",
+        data, t.path.string(), name, extra));
+    REQUIRE(r.exit_code == 0);
+    return t.path / "autoencoder" / name;
+  };
+  fs::path plain = train_run("plain", ""), snap = train_run("snap", "--snapshot-every 20");
+  CHECK(fs::exists(snap / "checkpoints/snapshot_000020.pt"));
+  CHECK_FALSE(fs::exists(snap / "checkpoints/snapshot_000040.pt"));  // the last step is final.pt
+  CHECK_FALSE(fs::exists(plain / "checkpoints/snapshot_000020.pt"));
+  auto a = archive_tensors(plain / "checkpoints/final.pt"), b = archive_tensors(snap / "checkpoints/final.pt");
+  auto s20 = archive_tensors(snap / "checkpoints/snapshot_000020.pt");
+  REQUIRE(!a.empty());
+  REQUIRE(a.size() == b.size());
+  REQUIRE(s20.size() == a.size());  // final.pt's format: the same tensors
+  bool all_equal = true, some_differ = false;
+  for (auto& [k, v] : a) {
+    REQUIRE(b.count(k) == 1);
+    REQUIRE(s20.count(k) == 1);
+    all_equal = all_equal && torch::equal(v, b[k]);  // snapshotting observes the run, bit for bit
+    some_differ = some_differ || !torch::equal(v, s20[k]);  // 20 steps earlier
+  }
+  CHECK(all_equal);
+  CHECK(some_differ);
+}
