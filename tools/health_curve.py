@@ -6,8 +6,9 @@ weights, then writes health_curve.csv, health_curve.md and health_curve.png.
 Each snapshot is checked through a view directory under --out that holds the
 run's config and outputs and links its checkpoints/final.pt to the snapshot, so
 the health command judges exactly the weights the run held at that step (EMA
-included) and the run directory itself is never written. CPU time = the run's
-wall time at that step (metrics.csv) x its torch threads (log.txt).
+included) and the run directory itself is never written. Training time = the
+run's wall time at that step (metrics.csv, summed over resumed segments), in
+minutes on the machine that trained it; its thread counts are read from log.txt.
 
   tools/health_curve.py runs/prior/flow_standard-XXXX --samples 256
 """
@@ -58,12 +59,14 @@ def wall_at_steps(run):
 
 
 def run_threads(run):
+    """Torch thread counts of the run's segments, from log.txt ('N threads' and resumes)."""
+    counts = []
     with open(os.path.join(run, "log.txt")) as f:
         for line in f:
-            m = re.search(r"parameters, (\d+) threads", line)
+            m = re.search(r"(\d+) threads", line)
             if m:
-                return int(m.group(1))
-    return 1
+                counts.append(int(m.group(1)))
+    return sorted(set(counts)) or [1]
 
 
 def make_view(run, weights, view, final):
@@ -108,7 +111,7 @@ def main(argv):
         with open(health) as f:
             h = json.load(f)
         m = {x["key"]: x for x in h["metrics"]}
-        row = {"step": step, "cpu_minutes": walls.get(step, float("nan")) * threads / 60.0,
+        row = {"step": step, "train_minutes": walls.get(step, float("nan")) / 60.0,
                "healthy": h["healthy"], "failed": len(h["failed"])}
         for key, _, _ in TARGETED:
             if key in m:
@@ -121,24 +124,26 @@ def main(argv):
         w.writeheader()
         w.writerows(rows)
     with open(os.path.join(out, "health_curve.md"), "w") as f:
-        f.write(f"# Health against training time: `{run}` (N = {a.samples}, {threads} threads)\n\n")
-        f.write("| step | CPU min | " + " | ".join(lbl for _, lbl, _ in TARGETED) + " | targets missed |\n")
+        threads_txt = "/".join(str(t) for t in threads)
+        f.write(f"# Health against training time: `{run}` (N = {a.samples}; trained on {threads_txt} "
+                f"torch threads)\n\n")
+        f.write("| step | train min | " + " | ".join(lbl for _, lbl, _ in TARGETED) + " | targets missed |\n")
         f.write("|---:|---:|" + "---:|" * len(TARGETED) + "---:|\n")
         for r in rows:
             cells = []
             for key, _, kind in TARGETED:
                 v = r.get(key + ("_ratio" if kind == "ratio" else ""))
                 cells.append("–" if v is None else f"{v:.3g}")
-            f.write(f"| {r['step']} | {r['cpu_minutes']:.1f} | " + " | ".join(cells) + f" | {r['failed']} |\n")
+            f.write(f"| {r['step']} | {r['train_minutes']:.1f} | " + " | ".join(cells) + f" | {r['failed']} |\n")
     fig, axes = plt.subplots(1, len(TARGETED), figsize=(4 * len(TARGETED), 3.2))
     targets = {"fid": 2.0, "r_precision_top3": 0.8, "foot_skating": 3.0, "acceleration": 2.0,
                "bone_length_std_mm": 5.0}
     for ax, (key, lbl, kind) in zip(axes, TARGETED):
-        xs = [r["cpu_minutes"] for r in rows if key in r]
+        xs = [r["train_minutes"] for r in rows if key in r]
         ys = [r[key + ("_ratio" if kind == "ratio" else "")] for r in rows if key in r]
         ax.plot(xs, ys, "o-")
         ax.axhline(targets[key], color="g", ls="--", lw=1, label="target")
-        ax.set_xlabel("training CPU minutes")
+        ax.set_xlabel("training wall minutes")
         ax.set_title(lbl, fontsize=9)
         if key != "r_precision_top3":
             ax.set_yscale("log")

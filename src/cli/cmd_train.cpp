@@ -53,11 +53,17 @@ void add_ship_command(CLI::App& app) {
   cmd->add_option("overrides", a->overrides, "the key=value overrides it was trained with");
   cmd->add_option("--to", a->root, "shipped folder (default: pretrained/ in the source tree)");
   cmd->callback([a] {
+    // A shipped run is its config file as written: its retrain command and the
+    // hash check of the manifest test need no overrides.
+    if (run_config_hash(a->file, a->overrides) != run_config_hash(a->file, {}))
+      fail("ship {}: the overrides change the run ({}); write them into a config file and train and ship that",
+           a->file, fmt::join(a->overrides, " "));
     fs::path run = run_dir_of(a->file, a->overrides);
     std::string retrain = "motionctl train " + a->file;
     for (auto& o : a->overrides) retrain += " " + o;
     retrain += " run.force=true";
-    PretrainedEntry e = ship_run(run, a->root.empty() ? pretrained_root() : fs::path(a->root), a->file, retrain);
+    PretrainedEntry e = ship_run(run, a->root.empty() ? pretrained_root() : fs::path(a->root), a->file,
+                                 run_config_hash(a->file, a->overrides), retrain);
     std::cout << fmt::format("shipped {} as {} (final.pt sha1 {})\n", run.string(), e.dir.string(), e.sha1);
   });
 }

@@ -43,13 +43,14 @@ std::vector<PretrainedEntry> read_pretrained_manifest(const fs::path& root) {
     PretrainedEntry e;
     auto get = [&](const char* key) {
       if (!n.IsMap() || !n[key] || !n[key].IsScalar())
-        fail("{}: components[{}] has no '{}' (each entry: experiment, name, config, sha1, retrain)", file.string(), i,
-             key);
+        fail("{}: components[{}] has no '{}' (each entry: experiment, name, config, config_hash, sha1, retrain)",
+             file.string(), i, key);
       return n[key].as<std::string>();
     };
     e.experiment = get("experiment");
     e.name = get("name");
     e.config = get("config");
+    e.config_hash = get("config_hash");
     e.sha1 = get("sha1");
     e.retrain = get("retrain");
     e.dir = root / e.experiment / e.name;
@@ -94,12 +95,19 @@ void copy_tree_atomic(const fs::path& from, const fs::path& to) {
 
 }  // namespace
 
-bool install_pretrained(const std::string& experiment, const std::string& name, const fs::path& run_dir,
-                        std::ostream* log) {
+bool install_pretrained(const std::string& experiment, const std::string& name, const std::string& config_hash,
+                        const fs::path& run_dir, std::ostream* log) {
   if (fs::exists(run_dir)) return false;
   const fs::path root = pretrained_root();
   auto e = find_pretrained(root, experiment, name);
   if (!e) return false;
+  if (e->config_hash != config_hash) {
+    if (log)
+      *log << fmt::format("the shipped {} was trained from another version of {} (config hash {}, now {}); training "
+                          "it instead\n",
+                          e->name, e->config, e->config_hash, config_hash);
+    return false;
+  }
   const fs::path ckpt = e->dir / "checkpoints" / "final.pt";
   if (!fs::exists(ckpt) || !fs::exists(e->dir / "DONE"))
     fail("shipped component '{}' is incomplete ({} or DONE missing); restore pretrained/ with git", e->name,
@@ -111,11 +119,41 @@ bool install_pretrained(const std::string& experiment, const std::string& name, 
          e->name, ckpt.string(), got, e->sha1, e->retrain);
   copy_tree_atomic(e->dir, run_dir);
   if (log) *log << fmt::format("using the shipped {} ({}) for {}\n", e->name, e->dir.string(), e->config);
+  // The runs it was trained on (a ControlNet's base, a TMD prior's tokenizer, an
+  // adapter's TMD prior) come with it: they were shipped under the names it records.
+  for (const std::string& dep : run_dependencies(run_dir)) {
+    const fs::path d(dep);
+    if (fs::exists(d)) continue;
+    auto de = find_pretrained(root, d.parent_path().filename().string(), d.filename().string());
+    if (de) install_pretrained(de->experiment, de->name, de->config_hash, d, log);
+  }
   return true;
 }
 
+std::vector<std::string> run_dependencies(const fs::path& run_dir) {
+  std::vector<std::string> out;
+  if (!fs::is_directory(run_dir / "outputs")) return out;
+  for (const auto& f : fs::directory_iterator(run_dir / "outputs")) {
+    if (f.path().extension() != ".yaml") continue;
+    YAML::Node n;
+    try {
+      n = YAML::LoadFile(f.path().string());
+    } catch (const YAML::Exception& e) {
+      fail("'{}' is corrupt: {}", f.path().string(), e.what());
+    }
+    if (!n.IsMap()) continue;
+    for (const auto& kv : n) {
+      const std::string key = kv.first.as<std::string>();
+      if (key.size() > 4 && key.compare(key.size() - 4, 4, "_run") == 0 && kv.second.IsScalar())
+        out.push_back(kv.second.as<std::string>());
+    }
+  }
+  std::sort(out.begin(), out.end());
+  return out;
+}
+
 PretrainedEntry ship_run(const fs::path& run_dir, const fs::path& root, const std::string& config,
-                         const std::string& retrain) {
+                         const std::string& config_hash, const std::string& retrain) {
   if (!fs::exists(run_dir / "DONE") || !fs::exists(run_dir / "checkpoints" / "final.pt"))
     fail("'{}' is not a finished run (DONE or checkpoints/final.pt missing); finish it before shipping it",
          run_dir.string());
@@ -123,6 +161,7 @@ PretrainedEntry ship_run(const fs::path& run_dir, const fs::path& root, const st
   e.experiment = run_dir.parent_path().filename().string();
   e.name = run_dir.filename().string();
   e.config = config;
+  e.config_hash = config_hash;
   e.retrain = retrain;
   e.dir = root / e.experiment / e.name;
   const fs::path staging = root / ".staging" / e.name;
@@ -147,11 +186,12 @@ PretrainedEntry ship_run(const fs::path& run_dir, const fs::path& root, const st
   entries.push_back(e);
   YAML::Emitter y;
   y << YAML::Comment("Trained components shipped with motionctl (written by `motionctl ship`). run_train installs "
-                     "an entry into runs/ when it is about to train a run of the same experiment and name.");
+                     "an entry into runs/ when it is about to train a run of the same experiment, name and config hash.");
   y << YAML::BeginMap << YAML::Key << "components" << YAML::Value << YAML::BeginSeq;
   for (auto& x : entries)
     y << YAML::BeginMap << YAML::Key << "experiment" << YAML::Value << x.experiment << YAML::Key << "name"
-      << YAML::Value << x.name << YAML::Key << "config" << YAML::Value << x.config << YAML::Key << "sha1"
+      << YAML::Value << x.name << YAML::Key << "config" << YAML::Value << x.config << YAML::Key << "config_hash"
+      << YAML::Value << x.config_hash << YAML::Key << "sha1"
       << YAML::Value << x.sha1 << YAML::Key << "retrain" << YAML::Value << x.retrain << YAML::EndMap;
   y << YAML::EndSeq << YAML::EndMap;
   write_file_atomic(root / "manifest.yaml", std::string(y.c_str()) + "\n");

@@ -17,6 +17,7 @@ struct PretrainedEntry {
   std::string experiment;  // runs/<experiment>/...
   std::string name;        // <config stem>-<config hash>
   std::string config;      // training config it was trained from (repo-relative)
+  std::string config_hash; // hash of its resolved config (without run.threads/force): installs only on a match
   std::string sha1;        // of checkpoints/final.pt
   std::string retrain;     // the command that retrains it from scratch
   fs::path dir;            // pretrained/<experiment>/<name>
@@ -34,17 +35,23 @@ std::optional<PretrainedEntry> find_pretrained(const fs::path& root, const std::
 // SHA-1 of a file's bytes (hex); UserError when unreadable.
 std::string file_sha1(const fs::path& file);
 
-// When `experiment/name` is shipped and `run_dir` does not exist, copies the shipped
-// run there (through a temporary sibling renamed into place, after checking the
-// checkpoint's SHA-1) and returns true. `log` (may be null) gets one line.
-bool install_pretrained(const std::string& experiment, const std::string& name, const fs::path& run_dir,
-                        std::ostream* log);
+// When `experiment/name` is shipped with the same config hash and `run_dir` does
+// not exist, copies the shipped run there (through a temporary sibling renamed
+// into place, after checking the checkpoint's SHA-1) and returns true. A shipped
+// run of another config (a named run whose config changed) is not installed.
+// `log` (may be null) gets one line.
+bool install_pretrained(const std::string& experiment, const std::string& name, const std::string& config_hash,
+                        const fs::path& run_dir, std::ostream* log);
+
+// Run directories a finished run was trained on, as its outputs/*.yaml record them
+// (every top-level key ending in `_run`: base_run, tokenizer_run, tmd_run).
+std::vector<std::string> run_dependencies(const fs::path& run_dir);
 
 // Copies the files a user of a finished run needs (config.yaml, overrides.txt,
 // seed.txt, summary.csv, metrics.csv, DONE, checkpoints/final.pt, outputs/, health.*)
 // into <root>/<experiment>/<name> and adds or replaces its manifest entry.
 // UserError when the run is not finished.
 PretrainedEntry ship_run(const fs::path& run_dir, const fs::path& root, const std::string& config,
-                         const std::string& retrain);
+                         const std::string& config_hash, const std::string& retrain);
 
 }  // namespace mc

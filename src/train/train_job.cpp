@@ -48,11 +48,19 @@ static std::string stem_of(const std::string& file) { return fs::path(file).stem
 
 // <config stem>-<hash>: run.threads and run.force are not part of a run's identity
 // (a run trained on one thread is the run a two-thread job asks for).
-static std::string default_run_name(const std::string& file, const TrainJobConfig& job) {
+static std::string identity_hash(const TrainJobConfig& job) {
   TrainJobConfig key = job;
   key.run.threads = 0;
   key.run.force = false;
-  return fmt::format("{}-{}", stem_of(file), config_hash(key));
+  return config_hash(key);
+}
+static std::string default_run_name(const std::string& file, const TrainJobConfig& job) {
+  return fmt::format("{}-{}", stem_of(file), identity_hash(job));
+}
+
+std::string run_config_hash(const std::string& requested, const std::vector<std::string>& overrides) {
+  const std::string file = redirected_config(requested);
+  return identity_hash(load_job<TrainJobConfig>(file, overrides));
 }
 
 // Builds the training data from its fixture config when the file is missing.
@@ -76,9 +84,12 @@ TrainResult run_train(const std::string& requested, const std::vector<std::strin
   auto job = load_job<TrainJobConfig>(file, overrides);
   ensure_training_data(job);
   std::string name = default_run_name(file, job);
-  // A component shipped in pretrained/ under this very name is installed, not retrained.
-  if (!job.run.force && job.run.name.empty())
-    install_pretrained(job.run.experiment, name, fs::path(job.run.root) / job.run.experiment / name, &std::cerr);
+  // A component shipped in pretrained/ under this run's name and with this config
+  // hash is installed, not retrained (named runs too: the hash guards them).
+  const std::string dir_name = job.run.name.empty() ? name : job.run.name;
+  if (!job.run.force)
+    install_pretrained(job.run.experiment, dir_name, identity_hash(job),
+                       fs::path(job.run.root) / job.run.experiment / dir_name, &std::cerr);
   TrainResult r = train(job, overrides, name, loop);
   auto& used = trained_runs_registry();
   const std::string dir = r.run_dir.string();

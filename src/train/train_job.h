@@ -13,6 +13,10 @@ namespace mc {
 TrainResult run_train(const std::string& config_file, const std::vector<std::string>& overrides,
                       const TrainLoopOptions& loop = {});
 
+// The hash that identifies the run of (config, overrides): its resolved config
+// without run.threads and run.force (the suffix of its default run name).
+std::string run_config_hash(const std::string& config_file, const std::vector<std::string>& overrides);
+
 // The run directory run_train(config, overrides) trains or reuses (no training).
 std::filesystem::path run_dir_of(const std::string& config_file, const std::vector<std::string>& overrides);
 

@@ -245,7 +245,8 @@ TrainResult train(TrainJobConfig& job, const std::vector<std::string>& overrides
   if (fs::exists(last)) {
     load_checkpoint(last, *trainable, opt, ema, st, sampler);
     metrics.truncate_after(st.step);
-    run.log().info(fmt::format("resuming {} from step {}", run.path().string(), st.step));
+    run.log().info(fmt::format("resuming {} from step {} ({} threads)", run.path().string(), st.step,
+                               torch::get_num_threads()));
   } else {
     fs::remove(run.metrics_path());
     run.log().info(fmt::format("training {} ({} trainable parameters, {} threads, device {}) in {}", job.model.type,
