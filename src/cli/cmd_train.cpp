@@ -59,6 +59,12 @@ void add_ship_command(CLI::App& app) {
       fail("ship {}: the overrides change the run ({}); write them into a config file and train and ship that",
            a->file, fmt::join(a->overrides, " "));
     fs::path run = run_dir_of(a->file, a->overrides);
+    // A named run (runs/evaluator/standard) may predate edits of its config file.
+    if (fs::exists(run / "config.yaml") &&
+        run_config_hash((run / "config.yaml").string(), {}) != run_config_hash(a->file, {}))
+      fail("ship {}: the run '{}' was trained from another version of this config; retrain it with `motionctl "
+           "train {} run.force=true` first",
+           a->file, run.string(), a->file);
     std::string retrain = "motionctl train " + a->file;
     for (auto& o : a->overrides) retrain += " " + o;
     retrain += " run.force=true";
