@@ -41,8 +41,10 @@ def parse_args(argv):
     p.add_argument("--out", default=None, help="folder of the views and curve files "
                                                "(default runs/health_curve/<run name>)")
     p.add_argument("--motionctl", default=os.environ.get("MOTIONCTL", "build/motionctl"))
-    p.add_argument("health_args", nargs="*", help="further arguments for `motionctl health` (key=value)")
-    return p.parse_args(argv)
+    p.epilog = "Arguments after -- go to `motionctl health` (e.g. -- --evaluator CFG key=value)."
+    a, rest = p.parse_known_args(argv)
+    a.health_args = [x for x in rest if x != "--"]
+    return a
 
 
 def fail(msg):
@@ -75,10 +77,12 @@ def make_view(run, weights, view, final):
     if os.path.isdir(view):
         shutil.rmtree(view)
     os.makedirs(os.path.join(view, "checkpoints"))
-    for name in ("config.yaml", "overrides.txt", "seed.txt", "DONE") + (("summary.csv",) if final else ()):
+    for name in ("config.yaml", "overrides.txt", "seed.txt") + (("summary.csv",) if final else ()):
         src = os.path.join(run, name)
         if os.path.exists(src):
             shutil.copy(src, os.path.join(view, name))
+    with open(os.path.join(view, "DONE"), "w"):
+        pass
     shutil.copytree(os.path.join(run, "outputs"), os.path.join(view, "outputs"))
     os.symlink(os.path.abspath(weights), os.path.join(view, "checkpoints", "final.pt"))
 
@@ -86,8 +90,9 @@ def make_view(run, weights, view, final):
 def main(argv):
     a = parse_args(argv)
     run = a.run.rstrip("/")
-    if not os.path.exists(os.path.join(run, "DONE")):
-        fail(f"'{run}' is not a finished run (no DONE); finish training it first")
+    if not os.path.exists(os.path.join(run, "config.yaml")):
+        fail(f"'{run}' is not a run directory (no config.yaml)")
+    finished = os.path.exists(os.path.join(run, "DONE"))
     snaps = sorted(glob.glob(os.path.join(run, "checkpoints", "snapshot_*.pt")))
     if not snaps:
         fail(f"'{run}' has no checkpoints/snapshot_*.pt; train it with `motionctl train CONFIG --snapshot-every N`")
@@ -96,7 +101,8 @@ def main(argv):
     walls, threads = wall_at_steps(run), run_threads(run)
     final_step = max(walls)
     points = [(int(re.search(r"snapshot_(\d+)\.pt", s).group(1)), s) for s in snaps]
-    points.append((final_step, os.path.join(run, "checkpoints", "final.pt")))
+    if finished:  # an unfinished run: the snapshots so far (run again when it is done)
+        points.append((final_step, os.path.join(run, "checkpoints", "final.pt")))
     rows = []
     for step, weights in points:
         view = os.path.join(out, f"step_{step:06d}")

@@ -319,6 +319,8 @@ TrainResult train(TrainJobConfig& job, const std::vector<std::string>& overrides
       ar.save_to(out.tmp_path().string());
       out.commit();
       for (size_t i = 0; i < live.size(); ++i) params[i].copy_(live[i]);
+      // Vocabulary and metadata too, so a snapshot of a run still training can be loaded.
+      trainable->save_artifacts(run.outputs());
     }
     if (stop_after > 0 && st.step - first_step >= stop_after && !last_step) {
       run.log().info(fmt::format("stopping at step {} as asked (resume by running again)", st.step));

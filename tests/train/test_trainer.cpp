@@ -237,6 +237,17 @@ TEST_CASE("snapshots hold the weights of each step without changing the run", "[
   };
   fs::path plain = train_run("plain", ""), snap = train_run("snap", "--snapshot-every 20");
   CHECK(fs::exists(snap / "checkpoints/snapshot_000020.pt"));
+  auto partial = run_motionctl(fmt::format(
+      "train configs/prior/flow_tiny.yaml data.path={} optim.steps=40 optim.warmup=5 run.log_every=10 "
+      "run.checkpoint_every=20 run.root={} run.name=partial run.seed=3 run.threads=1 --snapshot-every 10 "
+      "--stop-after 20",
+      data, t.path.string()));
+  REQUIRE(partial.exit_code == 0);
+  // A run still training: its snapshots come with the outputs that load them.
+  CHECK(fs::exists(t.path / "prior/partial/checkpoints/snapshot_000010.pt"));
+  CHECK(fs::exists(t.path / "prior/partial/outputs/vocab.txt"));
+  CHECK(fs::exists(t.path / "prior/partial/outputs/prior_meta.yaml"));
+  CHECK_FALSE(fs::exists(t.path / "prior/partial/DONE"));
   CHECK_FALSE(fs::exists(snap / "checkpoints/snapshot_000040.pt"));  // the last step is final.pt
   CHECK_FALSE(fs::exists(plain / "checkpoints/snapshot_000020.pt"));
   auto a = archive_tensors(plain / "checkpoints/final.pt"), b = archive_tensors(snap / "checkpoints/final.pt");
