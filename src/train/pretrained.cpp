@@ -51,6 +51,11 @@ std::vector<PretrainedEntry> read_pretrained_manifest(const fs::path& root) {
     e.name = get("name");
     e.config = get("config");
     e.config_hash = get("config_hash");
+    if (n["overrides"]) {
+      if (!n["overrides"].IsSequence())
+        fail("{}: components[{}].overrides must be a list of key=value strings", file.string(), i);
+      for (const auto& o : n["overrides"]) e.overrides.push_back(o.as<std::string>());
+    }
     e.sha1 = get("sha1");
     e.retrain = get("retrain");
     e.dir = root / e.experiment / e.name;
@@ -153,7 +158,8 @@ std::vector<std::string> run_dependencies(const fs::path& run_dir) {
 }
 
 PretrainedEntry ship_run(const fs::path& run_dir, const fs::path& root, const std::string& config,
-                         const std::string& config_hash, const std::string& retrain) {
+                         const std::vector<std::string>& overrides, const std::string& config_hash,
+                         const std::string& retrain) {
   if (!fs::exists(run_dir / "DONE") || !fs::exists(run_dir / "checkpoints" / "final.pt"))
     fail("'{}' is not a finished run (DONE or checkpoints/final.pt missing); finish it before shipping it",
          run_dir.string());
@@ -161,6 +167,7 @@ PretrainedEntry ship_run(const fs::path& run_dir, const fs::path& root, const st
   e.experiment = run_dir.parent_path().filename().string();
   e.name = run_dir.filename().string();
   e.config = config;
+  e.overrides = overrides;
   e.config_hash = config_hash;
   e.retrain = retrain;
   e.dir = root / e.experiment / e.name;
@@ -188,11 +195,13 @@ PretrainedEntry ship_run(const fs::path& run_dir, const fs::path& root, const st
   y << YAML::Comment("Trained components shipped with motionctl (written by `motionctl ship`). run_train installs "
                      "an entry into runs/ when it is about to train a run of the same experiment, name and config hash.");
   y << YAML::BeginMap << YAML::Key << "components" << YAML::Value << YAML::BeginSeq;
-  for (auto& x : entries)
+  for (auto& x : entries) {
     y << YAML::BeginMap << YAML::Key << "experiment" << YAML::Value << x.experiment << YAML::Key << "name"
-      << YAML::Value << x.name << YAML::Key << "config" << YAML::Value << x.config << YAML::Key << "config_hash"
-      << YAML::Value << x.config_hash << YAML::Key << "sha1"
-      << YAML::Value << x.sha1 << YAML::Key << "retrain" << YAML::Value << x.retrain << YAML::EndMap;
+      << YAML::Value << x.name << YAML::Key << "config" << YAML::Value << x.config;
+    if (!x.overrides.empty()) y << YAML::Key << "overrides" << YAML::Value << YAML::Flow << x.overrides;
+    y << YAML::Key << "config_hash" << YAML::Value << x.config_hash << YAML::Key << "sha1" << YAML::Value << x.sha1
+      << YAML::Key << "retrain" << YAML::Value << x.retrain << YAML::EndMap;
+  }
   y << YAML::EndSeq << YAML::EndMap;
   write_file_atomic(root / "manifest.yaml", std::string(y.c_str()) + "\n");
   return e;

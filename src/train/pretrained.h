@@ -17,6 +17,7 @@ struct PretrainedEntry {
   std::string experiment;  // runs/<experiment>/...
   std::string name;        // <config stem>-<config hash>
   std::string config;      // training config it was trained from (repo-relative)
+  std::vector<std::string> overrides;  // key=value overrides it was trained with (a table's ablation variant)
   std::string config_hash; // hash of its resolved config (without run.threads/force): installs only on a match
   std::string sha1;        // of checkpoints/final.pt
   std::string retrain;     // the command that retrains it from scratch
@@ -52,6 +53,7 @@ std::vector<std::string> run_dependencies(const fs::path& run_dir);
 // into <root>/<experiment>/<name> and adds or replaces its manifest entry.
 // UserError when the run is not finished.
 PretrainedEntry ship_run(const fs::path& run_dir, const fs::path& root, const std::string& config,
-                         const std::string& config_hash, const std::string& retrain);
+                         const std::vector<std::string>& overrides, const std::string& config_hash,
+                         const std::string& retrain);
 
 }  // namespace mc

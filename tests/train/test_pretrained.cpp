@@ -40,7 +40,7 @@ TEST_CASE("pretrained: ship, install instead of training, refuse changed bytes",
   const fs::path run = tmp.path / "runs" / "prior" / "flow_x-0123456789ab", root = tmp.path / "shipped";
   fake_finished_run(run);
   PretrainedEntry e =
-      ship_run(run, root, "configs/prior/flow_x.yaml", "0123456789ab", "motionctl train configs/prior/flow_x.yaml");
+      ship_run(run, root, "configs/prior/flow_x.yaml", {"model.smooth_weight=2"}, "0123456789ab", "motionctl train configs/prior/flow_x.yaml");
   CHECK(e.experiment == "prior");
   CHECK(e.name == "flow_x-0123456789ab");
   CHECK(e.sha1 == file_sha1(run / "checkpoints" / "final.pt"));
@@ -49,8 +49,9 @@ TEST_CASE("pretrained: ship, install instead of training, refuse changed bytes",
   auto entries = read_pretrained_manifest(root);
   REQUIRE(entries.size() == 1);
   CHECK(entries[0].retrain == "motionctl train configs/prior/flow_x.yaml");
+  CHECK(entries[0].overrides == std::vector<std::string>{"model.smooth_weight=2"});
   // Shipping again replaces the entry instead of adding one.
-  ship_run(run, root, "configs/prior/flow_x.yaml", "0123456789ab", "again");
+  ship_run(run, root, "configs/prior/flow_x.yaml", {"model.smooth_weight=2"}, "0123456789ab", "again");
   REQUIRE(read_pretrained_manifest(root).size() == 1);
 
   ScopedEnv env("MOTIONCTL_PRETRAINED", root.string());
@@ -93,8 +94,8 @@ TEST_CASE("pretrained: installing a run installs the shipped runs it was trained
   write_file_atomic(cnet / "outputs" / "controlnet_meta.yaml", fmt::format("base_run: {}\n", base_target.string()));
   CHECK(run_dependencies(cnet) == std::vector<std::string>{base_target.string()});
   CHECK(run_dependencies(base).empty());
-  ship_run(base, root, "configs/prior/flow_b.yaml", "aaaaaaaaaaaa", "retrain b");
-  ship_run(cnet, root, "configs/prior/flow_controlnet_b.yaml", "bbbbbbbbbbbb", "retrain c");
+  ship_run(base, root, "configs/prior/flow_b.yaml", {}, "aaaaaaaaaaaa", "retrain b");
+  ship_run(cnet, root, "configs/prior/flow_controlnet_b.yaml", {}, "bbbbbbbbbbbb", "retrain c");
   ScopedEnv env("MOTIONCTL_PRETRAINED", root.string());
   const fs::path target = tmp.path / "fresh" / "prior" / "flow_controlnet_b-bbbbbbbbbbbb";
   REQUIRE(install_pretrained("prior", "flow_controlnet_b-bbbbbbbbbbbb", "bbbbbbbbbbbb", target, nullptr));
@@ -110,8 +111,8 @@ TEST_CASE("pretrained: every shipped component matches its config's hash, loads,
     INFO(e.name);
     const std::string config = std::string(MOTIONCTL_SOURCE_DIR) + "/" + e.config;
     // The run name and hash run_train gives the config today: a changed config (or default) no longer matches.
-    CHECK(run_dir_of(config, {}).filename().string() == e.name);
-    CHECK(run_config_hash(config, {}) == e.config_hash);
+    CHECK(run_dir_of(config, e.overrides).filename().string() == e.name);
+    CHECK(run_config_hash(config, e.overrides) == e.config_hash);
     REQUIRE(fs::exists(e.dir / "checkpoints" / "final.pt"));
     CHECK(file_sha1(e.dir / "checkpoints" / "final.pt") == e.sha1);
     CHECK(fs::exists(e.dir / "DONE"));
