@@ -104,7 +104,7 @@ TEST_CASE("score on a generate output reproduces the generator's printed control
     REQUIRE(m.size() == 2);
     CHECK(m.lengths[0] == 30);
     CHECK(m.captions[1][0] == "a person walks in a curve");
-    CHECK(m.at(0, 0, 0)[0] == Approx(0.0).margin(1e-5));  // the hard start holds
+    CHECK(m.at(0, 0, 0)[0] == Approx(0.0).margin(1e-4));  // the hard start holds
     auto s = run_motionctl(fmt::format("score {} --csv", out));
     REQUIRE(s.exit_code == 0);
     auto v = csv_values(s.output);
