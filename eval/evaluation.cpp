@@ -1,6 +1,7 @@
 // Evaluation protocol: embeddings, one replication of the T2M metrics,
 // evaluator-free metrics, and the CSV/HDF5 result files.
 #include "eval/evaluation.h"
+#include "eval/eval_outputs.h"
 
 #include <H5Cpp.h>
 
@@ -71,6 +72,20 @@ std::map<std::string, double> t2m_metrics(const EvalEmbeddings& e, const EvalPro
   return out;
 }
 
+// traj_err/loc_err at each threshold, avg_err, control_error from per-sample entry errors.
+static void add_control_metrics(const std::vector<std::vector<double>>& errors, const EvalProtocol& p,
+                                std::map<std::string, double>& out) {
+  ControlOptions co;
+  co.thresholds = p.control_thresholds;
+  ControlMetrics cm = control_metrics_from_errors(errors, co);
+  for (auto& rate : cm.rates) {
+    out[fmt::format("traj_err@{}", rate.threshold)] = rate.traj_err;
+    out[fmt::format("loc_err@{}", rate.threshold)] = rate.loc_err;
+  }
+  out["avg_err"] = cm.avg_err;
+  out["control_error"] = cm.control_error;
+}
+
 std::map<std::string, double> evaluator_free_metrics(const MotionSet& motions, const std::string& motions_source,
                                                      const EvalProtocol& p, const std::string& constraints,
                                                      const MotionSet* source) {
@@ -84,6 +99,23 @@ std::map<std::string, double> evaluator_free_metrics(const MotionSet& motions, c
   out["foot_skating"] = foot_skating_ratio(clips, motions.skeleton, fo);
   if (constraints.empty()) return out;
 
+  std::vector<std::vector<double>> errors = control_entry_errors(motions, motions_source, constraints, source);
+  add_control_metrics(errors, p, out);
+  return out;
+}
+
+std::map<std::string, double> evaluator_free_metrics(const MotionSet& motions, const std::string& motions_source,
+                                                     const EvalProtocol& p, const std::vector<ConstraintSpec>& specs) {
+  std::map<std::string, double> out = evaluator_free_metrics(motions, motions_source, p, "", nullptr);
+  std::vector<std::vector<double>> errors;
+  for (auto& e : control_entry_errors(motions, motions_source, specs))
+    if (!e.empty()) errors.push_back(std::move(e));  // unconstrained samples, as generate's error line skips them
+  if (!errors.empty()) add_control_metrics(errors, p, out);
+  return out;
+}
+
+std::vector<std::vector<double>> control_entry_errors(const MotionSet& motions, const std::string& motions_source,
+                                                      const std::string& constraints, const MotionSet* source) {
   ConstraintSpec spec = load_constraint_spec(constraints);
   if (source && source->size() != motions.size())
     fail("constraint source has {} clips but {} has {}; give one source clip per motion", source->size(),
@@ -101,16 +133,20 @@ std::map<std::string, double> evaluator_free_metrics(const MotionSet& motions, c
     LinearObservation obs = compile(spec, T, motions.skeleton, source ? src.data() : nullptr);
     errors.push_back(observation_entry_errors(obs, motions.clip(i)));
   }
-  ControlOptions co;
-  co.thresholds = p.control_thresholds;
-  ControlMetrics cm = control_metrics_from_errors(errors, co);
-  for (auto& rate : cm.rates) {
-    out[fmt::format("traj_err@{}", rate.threshold)] = rate.traj_err;
-    out[fmt::format("loc_err@{}", rate.threshold)] = rate.loc_err;
-  }
-  out["avg_err"] = cm.avg_err;
-  out["control_error"] = cm.control_error;
-  return out;
+  return errors;
+}
+
+std::vector<std::vector<double>> control_entry_errors(const MotionSet& motions, const std::string& motions_source,
+                                                      const std::vector<ConstraintSpec>& specs) {
+  if (specs.size() != motions.size())
+    fail("{}: {} constraint specs for {} motions; give one spec per motion", motions_source, specs.size(),
+         motions.size());
+  std::vector<std::vector<double>> errors(motions.size());
+  for (size_t i = 0; i < motions.size(); ++i)
+    if (!specs[i].items.empty())
+      errors[i] = observation_entry_errors(compile(specs[i], motions.lengths[i], motions.skeleton, nullptr),
+                                           motions.clip(i));
+  return errors;
 }
 
 // Metric keys may hold '/' (task groups such as "control_error@family=root3d/K=8"),
@@ -143,7 +179,115 @@ std::map<std::string, std::vector<double>> read_metric_results(const std::string
   return out;
 }
 
+static void write_metric_results_impl(const std::string& dir, const std::map<std::string, std::vector<double>>& values,
+                                      const EvalSampleRecord* record);
+
+namespace {
+
+void write_matrix(H5::Group& g, const std::string& name, const Eigen::MatrixXd& m) {
+  hsize_t dims[2] = {static_cast<hsize_t>(m.rows()), static_cast<hsize_t>(m.cols())};
+  H5::DataSpace space(2, dims);
+  // Row-major on disk (numpy's order): sample i is row i.
+  Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor> rm = m;
+  g.createDataSet(name, H5::PredType::IEEE_F64LE, space).write(rm.data(), H5::PredType::NATIVE_DOUBLE);
+}
+
+Eigen::MatrixXd read_matrix(H5::Group& g, const std::string& name) {
+  H5::DataSet ds = g.openDataSet(name);
+  hsize_t dims[2] = {0, 0};
+  if (ds.getSpace().getSimpleExtentNdims() != 2) throw H5::DataSetIException("read_matrix", name + " is not 2-D");
+  ds.getSpace().getSimpleExtentDims(dims);
+  Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor> rm(dims[0], dims[1]);
+  ds.read(rm.data(), H5::PredType::NATIVE_DOUBLE);
+  return rm;
+}
+
+void write_strings(H5::Group& g, const std::string& name, const std::vector<std::string>& v) {
+  H5::StrType type(H5::PredType::C_S1, H5T_VARIABLE);
+  type.setCset(H5T_CSET_UTF8);
+  hsize_t n = v.size();
+  H5::DataSpace space(1, &n);
+  std::vector<const char*> ptrs;
+  for (auto& x : v) ptrs.push_back(x.c_str());
+  auto ds = g.createDataSet(name, type, space);
+  if (n > 0) ds.write(ptrs.data(), type);
+}
+
+std::vector<std::string> read_strings(H5::Group& g, const std::string& name) {
+  H5::DataSet ds = g.openDataSet(name);
+  hsize_t n = 0;
+  ds.getSpace().getSimpleExtentDims(&n);
+  H5::StrType type(H5::PredType::C_S1, H5T_VARIABLE);
+  std::vector<char*> ptrs(n, nullptr);
+  if (n > 0) ds.read(ptrs.data(), type);
+  std::vector<std::string> out;
+  for (char* p : ptrs) out.emplace_back(p ? p : ""), H5free_memory(p);
+  return out;
+}
+
+void write_string_attr(H5::H5Object& o, const std::string& name, const std::string& value) {
+  H5::StrType type(H5::PredType::C_S1, H5T_VARIABLE);
+  type.setCset(H5T_CSET_UTF8);
+  const char* p = value.c_str();
+  o.createAttribute(name, type, H5::DataSpace(H5S_SCALAR)).write(type, &p);
+}
+
+void write_record(H5::H5File& f, const EvalSampleRecord& r) {
+  for (auto& [k, v] : r.attrs) write_string_attr(f, k, v);
+  if (r.embeddings) {
+    H5::Group g = f.createGroup("embeddings");
+    write_matrix(g, "motion", r.embeddings->motion);
+    write_matrix(g, "text", r.embeddings->text);
+    write_matrix(g, "gt_motion", r.embeddings->gt_motion);
+    write_strings(g, "captions", r.embeddings->captions);
+    write_strings(g, "gt_ids", r.reference_ids);
+  }
+  H5::Group g = f.createGroup("samples");
+  write_strings(g, "ids", r.ids);
+  hsize_t n = r.lengths.size();
+  H5::DataSpace space(1, &n);
+  g.createDataSet("lengths", H5::PredType::STD_I32LE, space).write(r.lengths.data(), H5::PredType::NATIVE_INT);
+  for (auto& [k, v] : r.metrics) {
+    if (v.size() != r.lengths.size())
+      throw std::logic_error(fmt::format("per-sample metric {} has {} values for {} samples", k, v.size(), n));
+    g.createDataSet(h5_metric_name(k), H5::PredType::IEEE_F64LE, space).write(v.data(), H5::PredType::NATIVE_DOUBLE);
+  }
+}
+
+}  // namespace
+
+EvalEmbeddings read_eval_embeddings(const std::string& dir) {
+  const std::string path = (fs::path(dir) / "metrics.h5").string();
+  EvalEmbeddings e;
+  try {
+    H5::Exception::dontPrint();
+    H5::H5File f(path, H5F_ACC_RDONLY);
+    if (!f.nameExists("embeddings"))
+      fail("{}: no /embeddings group (written by `motionctl eval` since metrics.h5 format_version 2); re-run the "
+           "evaluation with run.force=true",
+           path);
+    H5::Group g = f.openGroup("embeddings");
+    e.motion = read_matrix(g, "motion");
+    e.text = read_matrix(g, "text");
+    e.gt_motion = read_matrix(g, "gt_motion");
+    e.captions = read_strings(g, "captions");
+  } catch (const H5::Exception& ex) {
+    fail("{}: cannot read the embeddings ({}); delete the run directory to recompute it", path, ex.getDetailMsg());
+  }
+  return e;
+}
+
 void write_metric_results(const std::string& dir, const std::map<std::string, std::vector<double>>& values) {
+  write_metric_results_impl(dir, values, nullptr);
+}
+
+void write_eval_results(const std::string& dir, const std::map<std::string, std::vector<double>>& values,
+                        const EvalSampleRecord& record) {
+  write_metric_results_impl(dir, values, &record);
+}
+
+static void write_metric_results_impl(const std::string& dir, const std::map<std::string, std::vector<double>>& values,
+                                      const EvalSampleRecord* record) {
   std::string csv = "metric,mean,std,ci95,n\n";
   for (auto& [k, v] : values) {
     Replicated r = summarize(v);
@@ -166,6 +310,13 @@ void write_metric_results(const std::string& dir, const std::map<std::string, st
       for (auto [name, val] : {std::pair<const char*, double>{"mean", r.mean}, {"std", r.std}, {"ci95", r.ci95}})
         ds.createAttribute(name, H5::PredType::NATIVE_DOUBLE, scalar).write(H5::PredType::NATIVE_DOUBLE, &val);
     }
+    // Version 1 files (no attributes) held /replicates only; 2 adds these attributes and,
+    // from `motionctl eval`, /embeddings and /samples.
+    write_string_attr(f, "format", "motionctl.metrics");
+    const int64_t version = 2;
+    f.createAttribute("format_version", H5::PredType::STD_I64LE, H5::DataSpace(H5S_SCALAR))
+        .write(H5::PredType::NATIVE_INT64, &version);
+    if (record) write_record(f, *record);
   }
   out.commit();
 }

@@ -1,6 +1,7 @@
 // Runs one table row: tasks from the protocol, `repeats` fresh generations,
 // evaluator and control metrics per replicate, cached in a run directory keyed
-// by the resolved generator, protocol and profile.
+// by the resolved generator, protocol and profile and the SHA-1 of the data file
+// and evaluator checkpoint (content, not paths).
 #include <yaml-cpp/yaml.h>
 
 #include <chrono>
@@ -21,6 +22,7 @@
 #include "experiments/experiment.h"
 #include "experiments/row_evaluator.h"
 #include "samplers/motion_generator.h"
+#include "train/pretrained.h"
 #include "train/train_job.h"
 #include "train/trainer.h"
 
@@ -100,6 +102,7 @@ ResolvedRow resolve_row(const ProfileConfig& profile, const TableSpec& table, co
 // The key that decides whether a finished row run can be reused.
 struct RowRunKey : Config {
   std::string generator, protocol, data, evaluator, split;
+  std::string data_sha1, evaluator_sha1;  // the inputs by content: a file regenerated in place is a new key
   std::vector<std::string> trained_configs;
   int num_samples = 0, repeats = 0, mm_texts = 0, mm_generations = 0;
   int64_t seed = 0;
@@ -110,6 +113,8 @@ struct RowRunKey : Config {
     v("data", data, "ground-truth file");
     v("evaluator", evaluator, "evaluator config");
     v("split", split, "split");
+    v("data_sha1", data_sha1, "SHA-1 of the ground-truth file's bytes");
+    v("evaluator_sha1", evaluator_sha1, "SHA-1 of the evaluator checkpoint's bytes");
     v("trained_configs", trained_configs, "training-config swaps");
     v("num_samples", num_samples, "tasks");
     v("repeats", repeats, "replications");
@@ -313,6 +318,8 @@ RowResult run_row(const ProfileFile& pf, const TableSpec& table, const RowConfig
   key.data = profile.data;
   key.evaluator = profile.evaluator;
   key.split = profile.split;
+  key.data_sha1 = file_sha1(resolve_data_path(profile.data));
+  key.evaluator_sha1 = file_sha1(fs::path(ev.evaluator_run()) / "checkpoints" / "final.pt");
   key.trained_configs = profile.trained_configs;
   key.num_samples = table.table.num_samples > 0 ? table.table.num_samples : profile.num_samples;
   key.repeats = profile.repeats;

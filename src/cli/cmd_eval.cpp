@@ -1,5 +1,9 @@
-// `motionctl eval CONFIG [overrides]` (evaluator metrics with replications) and
-// `motionctl score FILE.h5 [--constraints SPEC]` (evaluator-free metrics).
+// `motionctl eval CONFIG [overrides]` (evaluator metrics with replications; run
+// directories keyed by the SHA-1 of every input's bytes, embeddings and per-sample
+// metrics in metrics.h5) and `motionctl score FILE.h5 [--constraints SPEC]`
+// (evaluator-free metrics; without --constraints, the specs the file carries).
+#include <c10/util/hash.h>
+
 #include <filesystem>
 #include <optional>
 #include <iostream>
@@ -7,11 +11,14 @@
 #include "cli/commands.h"
 #include "cli/eval_job.h"
 #include "cli/jobs.h"
+#include "control/sample_constraints.h"
 #include "train/train_job.h"
 #include "core/error.h"
 #include "core/run_dir.h"
 #include "data/skeleton.h"
+#include "eval/eval_outputs.h"
 #include "eval/evaluation.h"
+#include "train/pretrained.h"
 
 namespace mc {
 namespace fs = std::filesystem;
@@ -28,18 +35,40 @@ MotionSet split_of(const MotionSet& m, const std::string& split, const std::stri
 
 EvalJobResult run_eval_job(EvalJobConfig& job, const std::vector<std::string>& overrides, const std::string& stem) {
   EvalJobResult res;
-  RunDir run = RunDir::open(job.run, dump_config(job), overrides, fmt::format("{}-{}", stem, config_hash(job)));
+  // Everything the result depends on, by content: the run is keyed by the SHA-1 of the
+  // inputs' bytes, so a file regenerated at the same path is a new evaluation, never a
+  // stale cached one. The evaluator is trained (or found) first for its checkpoint.
+  TrainResult ev_run = run_train(resolve_data_path(job.eval.evaluator), {});
+  std::string ref_path = resolve_data_path(job.eval.reference);
+  std::string motions_path = job.eval.motions.empty() ? ref_path : resolve_data_path(job.eval.motions);
+  std::string src_path = job.eval.source.empty() ? "" : resolve_data_path(job.eval.source);
+  std::string constraints_path = job.eval.constraints.empty() ? "" : resolve_data_path(job.eval.constraints);
+  std::vector<std::pair<std::string, std::string>> inputs = {
+      {"evaluator_checkpoint", (ev_run.run_dir / "checkpoints" / "final.pt").string()},
+      {"reference", ref_path},
+      {"motions", motions_path}};
+  if (!constraints_path.empty()) inputs.emplace_back("constraints", constraints_path);
+  if (!src_path.empty()) inputs.emplace_back("source", src_path);
+  std::map<std::string, std::string> attrs = {{"split", job.eval.split}, {"evaluator_run", ev_run.run_dir.string()}};
+  std::string identity = dump_config(job) + "# inputs by content (SHA-1 of the bytes), part of this run's identity:\n";
+  for (auto& [role, path] : inputs) {
+    if (!fs::exists(path))
+      fail("{}: eval.{} '{}' does not exist", stem, role == "evaluator_checkpoint" ? "evaluator" : role, path);
+    const std::string sha = file_sha1(path);
+    identity += fmt::format("#   {}: {} {}\n", role, sha, path);
+    attrs[role] = path;
+    attrs[role + "_sha1"] = sha;
+  }
+  RunDir run = RunDir::open(job.run, identity, overrides,
+                            fmt::format("{}-{}-{}", stem, config_hash(job), c10::sha1(identity).str().substr(0, 8)));
   res.run_dir = run.path().string();
-  if (run.finished()) {  // a finished evaluation is a no-op: report what it found
+  if (run.finished()) {  // a finished evaluation of the same bytes is a no-op: report what it found
     for (auto& [k, v] : run.summary()) res.values[k] = {v};
     run.log().info(fmt::format("{} is finished; showing its means (run.force=true redoes it)", res.run_dir));
     return res;
   }
-  TrainResult ev_run = run_train(resolve_data_path(job.eval.evaluator), {});
   T2MEvaluator ev = T2MEvaluator::load(ev_run.run_dir.string());
-  std::string ref_path = resolve_data_path(job.eval.reference);
   MotionSet reference = split_of(read_motion_file(ref_path), job.eval.split, ref_path);
-  std::string motions_path = job.eval.motions.empty() ? ref_path : resolve_data_path(job.eval.motions);
   MotionSet motions = job.eval.motions.empty() ? reference : read_motion_file(motions_path);
   if (!(motions.skeleton == reference.skeleton))
     fail("{}: skeleton '{}' differs from the reference's '{}'", motions_path, motions.skeleton.name,
@@ -48,16 +77,54 @@ EvalJobResult run_eval_job(EvalJobConfig& job, const std::vector<std::string>& o
                              motions_path, motions.size(), ref_path, job.eval.split, reference.size(),
                              ev_run.run_dir.string()));
   EvalEmbeddings emb = embed_for_eval(ev, reference, ref_path, motions, motions_path);
-  std::string src_path = job.eval.source.empty() ? "" : resolve_data_path(job.eval.source);
   std::optional<MotionSet> source;
   if (!src_path.empty()) source = read_motion_file(src_path);
-  auto free = evaluator_free_metrics(motions, motions_path, job.protocol, job.eval.constraints,
-                                     source ? &*source : nullptr);
+  // Control errors: from eval.constraints, else from the specs a generated file carries.
+  std::vector<ConstraintSpec> stored;
+  if (constraints_path.empty() && !job.eval.motions.empty()) {
+    stored = read_sample_constraints(motions_path).specs;
+    if (!any_constraints(stored)) stored.clear();
+    if (!stored.empty() && stored.size() != motions.size())
+      fail("{}: /control holds {} sample specs for {} motions", motions_path, stored.size(), motions.size());
+  }
+  auto free = stored.empty() ? evaluator_free_metrics(motions, motions_path, job.protocol, constraints_path,
+                                                      source ? &*source : nullptr)
+                             : evaluator_free_metrics(motions, motions_path, job.protocol, stored);
   for (int r = 0; r < job.protocol.repeats; ++r) {
     for (auto& [k, v] : t2m_metrics(emb, job.protocol, static_cast<uint64_t>(job.run.seed) + r)) res.values[k].push_back(v);
     for (auto& [k, v] : free) res.values[k].push_back(v);  // fixed motions: these do not vary
   }
-  write_metric_results(run.path().string(), res.values);
+
+  // Per sample, for outside tools: matching distance, foot skating, control errors.
+  EvalSampleRecord rec;
+  rec.embeddings = &emb;
+  rec.ids = motions.ids;
+  rec.lengths = motions.lengths;
+  rec.reference_ids = reference.ids;
+  rec.attrs = attrs;
+  const size_t n = motions.size();
+  auto& matching = rec.metrics["matching"];
+  for (size_t i = 0; i < n; ++i) matching.push_back((emb.text.row(i) - emb.motion.row(i)).norm());
+  FootSkatingOptions fo;
+  fo.fps = motions.fps;
+  fo.padded_196 = job.protocol.foot_skating_padded_196;
+  auto& skating = rec.metrics["foot_skating"];
+  for (size_t i = 0; i < n; ++i) skating.push_back(foot_skating_ratio({joints_view(motions, i)}, motions.skeleton, fo));
+  std::vector<std::vector<double>> errors;
+  if (!stored.empty()) errors = control_entry_errors(motions, motions_path, stored);
+  else if (!constraints_path.empty())
+    errors = control_entry_errors(motions, motions_path, constraints_path, source ? &*source : nullptr);
+  if (!errors.empty()) {
+    auto& avg = rec.metrics["avg_err"];
+    auto& mx = rec.metrics["max_err"];
+    for (auto& e : errors) {
+      double sum = 0, m = 0;
+      for (double x : e) sum += x, m = std::max(m, x);
+      avg.push_back(e.empty() ? std::nan("") : sum / e.size());
+      mx.push_back(e.empty() ? std::nan("") : m);
+    }
+  }
+  write_eval_results(run.path().string(), res.values, rec);
   std::map<std::string, double> summary;
   for (auto& [k, v] : res.values) summary[k] = summarize(v).mean;
   run.mark_finished(summary);
@@ -88,7 +155,8 @@ void add_eval_commands(CLI::App& app) {
     };
     auto a = std::make_shared<Args>();
     cmd->add_option("motions", a->file, "motion HDF5 file")->required();
-    cmd->add_option("--constraints", a->constraints, "constraint spec (YAML or HDF5) the motions were generated under");
+    cmd->add_option("--constraints", a->constraints, "constraint spec (YAML or HDF5) the motions were generated under (default: the per-sample specs "
+                   "`motionctl generate` stored in the file, if any)");
     cmd->add_option("--source", a->source, "motion file whose clip i gives sample i's from_source targets");
     cmd->add_flag("--csv", a->csv, "print metric,value CSV");
     cmd->add_flag("--padded-196", a->padded, "foot skating over the padded 196 frames");
@@ -98,7 +166,23 @@ void add_eval_commands(CLI::App& app) {
       if (!a->source.empty()) src = read_motion_file(a->source);
       EvalProtocol p;
       p.foot_skating_padded_196 = a->padded;
-      auto metrics = evaluator_free_metrics(m, a->file, p, a->constraints, src ? &*src : nullptr);
+      std::map<std::string, double> metrics;
+      std::vector<ConstraintSpec> stored;
+      if (a->constraints.empty()) stored = read_sample_constraints(a->file).specs;
+      if (any_constraints(stored)) {
+        if (stored.size() != m.size())
+          fail("{}: /control holds {} sample specs for {} motions; the group must hold one per motion", a->file,
+               stored.size(), m.size());
+        if (!a->source.empty())
+          fail("{}: --source gives from_source targets for --constraints, but the file's own specs (/control) "
+               "already hold their targets; drop --source or pass --constraints",
+               a->file);
+        std::cerr << fmt::format("control errors from the {} constraint specs stored in {} (/control)\n",
+                                 stored.size(), a->file);
+        metrics = evaluator_free_metrics(m, a->file, p, stored);
+      } else {
+        metrics = evaluator_free_metrics(m, a->file, p, a->constraints, src ? &*src : nullptr);
+      }
       if (a->csv) std::cout << "metric,value\n";
       for (auto& [k, v] : metrics)
         std::cout << (a->csv ? fmt::format("{},{:.8g}\n", k, v) : fmt::format("{:<16} {:.6f}\n", k, v));

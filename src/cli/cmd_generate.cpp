@@ -1,17 +1,22 @@
 // `motionctl generate CONFIG [overrides]`: controlled generation from YAML. A
 // `generator:` (ProjFlow, a baseline, AnchorRoute, ...) runs on the tasks a
-// `protocol:` draws from a data split; writes the motions and prints control errors.
+// `protocol:` draws from a data split (or on the user's own constraints, `custom:`);
+// writes the motions with each sample's constraint spec (/control) and prints the
+// control errors, which `motionctl score FILE` recomputes from the file alone.
 #include <chrono>
 #include <iostream>
+#include <optional>
 
 #include "cli/commands.h"
 #include "cli/generate_job.h"
 #include "control/control_task.h"
 #include "control/linear_observation.h"
+#include "control/sample_constraints.h"
 #include "core/error.h"
 #include "core/run_dir.h"
 #include "data/fixture/fixture_build.h"
 #include "data/motion_set.h"
+#include "data/motion_file_extra.h"
 #include "data/skeleton.h"
 #include "eval/metrics.h"
 #include "eval/observation_errors.h"
@@ -20,6 +25,50 @@
 
 namespace mc {
 namespace {
+
+// Replaces the protocol's constraints, captions or lengths by the user's (`custom:`).
+void apply_custom(const GenerateCustomConfig& c, const std::string& file, int num_joints,
+                  std::vector<ControlTask>& tasks) {
+  std::vector<ConstraintSpec> per_task;
+  std::vector<int> per_task_frames;
+  std::optional<ConstraintSpec> shared;
+  if (!c.constraints.empty()) {
+    const std::string path = resolve_data_path(c.constraints);
+    if (!fs::exists(path))
+      fail("{}: custom.constraints '{}' does not exist; give a constraint spec (YAML or HDF5, docs/constraints.md) "
+           "or a motion file with a /control group",
+           file, c.constraints);
+    const std::string ext = fs::path(path).extension().string();
+    if (ext == ".h5" || ext == ".hdf5") {
+      SampleConstraints sc = read_sample_constraints(path);
+      per_task = std::move(sc.specs);
+      per_task_frames = std::move(sc.frames);
+    }
+    if (per_task.empty()) {
+      shared = load_constraint_spec(path);
+    } else if (per_task.size() != tasks.size()) {
+      fail("{}: custom.constraints '{}' holds {} per-task specs (/control) but the protocol drew {} tasks; set "
+           "data.num_samples={} or give a spec file that applies to every task",
+           file, c.constraints, per_task.size(), tasks.size(), per_task.size());
+    }
+  }
+  for (size_t i = 0; i < tasks.size(); ++i) {
+    ControlTask& t = tasks[i];
+    if (shared) t.spec = *shared;
+    if (!per_task.empty()) t.spec = per_task[i];
+    if (!c.caption.empty()) t.caption = c.caption;
+    int length = c.length > 0 ? c.length : (!per_task_frames.empty() ? per_task_frames[i] : t.length);
+    if (length != t.length) {
+      // The clip stays the source of from_source targets while it is long enough;
+      // past its end there is no source, and compile() names the items that need one.
+      if (length <= t.length && !t.source.empty())
+        t.source.resize(static_cast<size_t>(length) * num_joints * 3);
+      else
+        t.source.clear();
+      t.length = length;
+    }
+  }
+}
 
 void run_generate(const std::string& file, const std::vector<std::string>& overrides) {
   auto job = load_job<GenerateJobConfig>(file, overrides);
@@ -36,6 +85,7 @@ void run_generate(const std::string& file, const std::vector<std::string>& overr
     clips.resize(job.data.num_samples);
   const uint64_t seed = static_cast<uint64_t>(job.run.seed);
   std::vector<ControlTask> tasks = as_protocol(job.protocol).make_tasks(data, clips, seed);
+  apply_custom(job.custom, file, data.num_joints(), tasks);
 
   GeneratorContext ctx;
   ctx.device = setup_torch(job.run);
@@ -52,6 +102,8 @@ void run_generate(const std::string& file, const std::vector<std::string>& overr
   const int J = data.num_joints();
   m.joints.assign(tasks.size() * m.clip_stride(), 0.0f);
   std::vector<std::vector<double>> errors;
+  std::vector<ConstraintSpec> stored;  // each sample's spec with its targets written out (/control)
+  std::vector<int> stored_frames;
   double worst_hard = 0;
   for (size_t i = 0; i < tasks.size(); ++i) {
     const int len = std::min<int>(g.lengths.at(i), m.t_max);
@@ -61,8 +113,11 @@ void run_generate(const std::string& file, const std::vector<std::string>& overr
     m.ids.push_back(tasks[i].id);
     m.splits.push_back("sample");
     m.captions.push_back({tasks[i].caption});
+    const float* source = tasks[i].source.empty() ? nullptr : tasks[i].source.data();
+    stored.push_back(with_explicit_targets(tasks[i].spec, len, data.skeleton, source));
+    stored_frames.push_back(len);
     if (tasks[i].spec.items.empty()) continue;
-    LinearObservation obs = compile(tasks[i].spec, len, data.skeleton, tasks[i].source.data());
+    LinearObservation obs = compile(tasks[i].spec, len, data.skeleton, source);
     errors.push_back(observation_entry_errors(obs, m.clip(i)));
     Eigen::VectorXd x(obs.dim());
     for (int k = 0; k < obs.dim(); ++k) x[k] = m.clip(i)[k];
@@ -72,7 +127,7 @@ void run_generate(const std::string& file, const std::vector<std::string>& overr
   }
   m.stats = data.stats;
   m.provenance = Provenance{"motionctl generate", MOTIONCTL_VERSION, job.run.seed, dump_config(job), utc_timestamp()};
-  write_motion_file(job.output, m);
+  write_motion_file(job.output, m, [&](int64_t f) { write_sample_constraints(f, stored, stored_frames, job.output); });
   std::cout << fmt::format("wrote {} motions to {} ({:.2f} s/motion)\n", m.size(), job.output,
                            g.seconds / std::max<size_t>(1, m.size()));
   if (!errors.empty()) {

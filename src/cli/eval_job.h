@@ -23,7 +23,8 @@ struct EvalInputs : Config {
     v("reference", reference, "ground-truth motion file");
     v("split", split, "reference split", one_of({"train", "val", "test"}));
     v("motions", motions, "motion file to evaluate ('' = the reference split itself: the ground-truth row)");
-    v("constraints", constraints, "constraint spec the motions were generated under ('' = no control metrics)");
+    v("constraints", constraints, "constraint spec the motions were generated under ('' = the per-sample specs a `generate` output "
+                   "carries, else no control metrics)");
     v("source", source, "motion file giving from_source constraint targets, clip i for motion i");
   }
 };

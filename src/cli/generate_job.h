@@ -1,5 +1,5 @@
 // The `motionctl generate` job config (marker key `generator:`): data split,
-// generator, protocol, output file.
+// generator, protocol, the user's own constraints, output file.
 #pragma once
 #include <string>
 
@@ -21,17 +21,36 @@ struct GenerateDataConfig : Config {
   }
 };
 
+// A user's own control instead of the protocol's (docs/formats.md, "Your own
+// constraints for generate"): the protocol still picks the clips (caption, length,
+// source motion), these keys replace what the user gives.
+struct GenerateCustomConfig : Config {
+  std::string constraints;
+  std::string caption;
+  int length = 0;
+  void visit(FieldVisitor& v) override {
+    v("constraints", constraints,
+      "constraint spec for every task (YAML or HDF5, docs/constraints.md), or a motion file whose /control group "
+      "gives one spec per task ('' = the protocol's)");
+    v("caption", caption, "text for every task ('' = each clip's)");
+    v("length", length, "frames of every task (0 = each clip's, or the /control/frames of a per-task file)",
+      at_least(0));
+  }
+};
+
 struct GenerateJobConfig : Config {
   RunConfig run;
   GenerateDataConfig data;
   Component generator{"generator"};
   Component protocol{"protocol"};
+  GenerateCustomConfig custom;
   std::string output = "samples/generated.h5";
   void visit(FieldVisitor& v) override {
     v("run", run, "seed, threads, device (run directories are not used)");
     v("data", data, "where the tasks come from");
     v("generator", generator, "the method (picked by type)");
     v("protocol", protocol, "the control tasks (picked by type)");
+    v("custom", custom, "your own constraints, caption or length in place of the protocol's");
     v("output", output, "motion HDF5 file to write (atomically)");
   }
 };

@@ -2,6 +2,7 @@
 // for dense targets (docs/constraints.md). Range checks that need the skeleton or
 // the clip length happen in compile(); everything else is checked here.
 #include "control/constraint_spec.h"
+#include "control/sample_constraints.h"
 
 #include <hdf5.h>
 #include <yaml-cpp/yaml.h>
@@ -687,7 +688,12 @@ ConstraintSpec load_constraint_spec_h5(const std::string& path, const std::strin
   if (!file.valid()) fail("{}: not a readable HDF5 file", path);
   if (H5Lexists(file.get(), group.c_str(), H5P_DEFAULT) <= 0)
     fail("{}: no group '{}' (a constraint file keeps its items under /{})", path, group, group);
-  H5Handle g(H5Gopen2(file.get(), group.c_str(), H5P_DEFAULT), H5Gclose);
+  return read_constraint_spec_group(file.get(), group, path);
+}
+
+ConstraintSpec read_constraint_spec_group(int64_t parent, const std::string& group, const std::string& path) {
+  QuietHdf5 quiet;
+  H5Handle g(H5Gopen2(static_cast<hid_t>(parent), group.c_str(), H5P_DEFAULT), H5Gclose);
   if (!g.valid()) fail("{}: '{}' is not a group", path, group);
   {
     if (H5Aexists(g.get(), "format") > 0) {
@@ -741,7 +747,16 @@ void save_constraint_spec_h5(const ConstraintSpec& spec, const std::string& path
   {
     H5Handle file(H5Fcreate(out.tmp_path().c_str(), H5F_ACC_TRUNC, H5P_DEFAULT, H5P_DEFAULT), H5Fclose);
     if (!file.valid()) fail("{}: cannot create the HDF5 file", path);
-    H5Handle g(H5Gcreate2(file.get(), group.c_str(), H5P_DEFAULT, H5P_DEFAULT, H5P_DEFAULT), H5Gclose);
+    write_constraint_spec_group(file.get(), group, spec, path);
+  }
+  out.commit();
+}
+
+void write_constraint_spec_group(int64_t parent, const std::string& group, const ConstraintSpec& spec,
+                                 const std::string& path) {
+  QuietHdf5 quiet;
+  {
+    H5Handle g(H5Gcreate2(static_cast<hid_t>(parent), group.c_str(), H5P_DEFAULT, H5P_DEFAULT, H5P_DEFAULT), H5Gclose);
     if (!g.valid()) fail("{}: cannot create group '{}'", path, group);
     H5Writer gw(g.get());
     gw.attr_string("format", kH5Format);
@@ -789,7 +804,6 @@ void save_constraint_spec_h5(const ConstraintSpec& spec, const std::string& path
         w.doubles("camera", {it.camera.scale, it.camera.pitch_deg, it.camera.yaw_deg, it.camera.roll_deg}, {4});
     }
   }
-  out.commit();
 }
 
 }  // namespace mc

@@ -1,6 +1,7 @@
 // MotionSet bookkeeping and the HDF5 motion file (docs/formats.md): an atomic,
 // byte-deterministic writer and a reader that turns every defect into a UserError.
 #include "data/motion_set.h"
+#include "data/motion_file_extra.h"
 
 #include <hdf5.h>
 
@@ -530,7 +531,9 @@ void MotionSet::check(const std::string& source) const {
 
 // ---------------------------------------------------------------- file IO
 
-void write_motion_file(const std::string& path, const MotionSet& m) {
+void write_motion_file(const std::string& path, const MotionSet& m) { write_motion_file(path, m, nullptr); }
+
+void write_motion_file(const std::string& path, const MotionSet& m, const std::function<void(int64_t)>& extra) {
   m.check(fmt::format("motion set for '{}'", path));
   AtomicOutput out(path);
   {
@@ -585,6 +588,7 @@ void write_motion_file(const std::string& path, const MotionSet& m) {
       w.attr_string(g.get(), "feature_layout", s.feature_layout);
     }
     if (!m.vocab.empty()) w.strings(root, "vocab", m.vocab);
+    if (extra) extra(root);
     w.close();
   }
   out.commit();
