@@ -365,6 +365,14 @@ class QuietHdf5 {
 };
 
 // Owns one hid_t.
+// Group and dataset creation properties without modification times, so the same
+// spec written twice gives the same bytes (as motion files do).
+static hid_t untimed(hid_t cls) {
+  hid_t p = H5Pcreate(cls);
+  H5Pset_obj_track_times(p, false);
+  return p;
+}
+
 class H5Handle {
  public:
   H5Handle() = default;
@@ -601,7 +609,8 @@ class H5Writer {
   }
   void dataset(const char* name, hid_t ftype, hid_t mtype, const std::vector<hsize_t>& dims, const void* data) {
     H5Handle sp(H5Screate_simple(static_cast<int>(dims.size()), dims.data(), nullptr), H5Sclose);
-    H5Handle d(H5Dcreate2(p_, name, ftype, sp.get(), H5P_DEFAULT, H5P_DEFAULT, H5P_DEFAULT), H5Dclose);
+    H5Handle dcpl(untimed(H5P_DATASET_CREATE), H5Pclose);
+    H5Handle d(H5Dcreate2(p_, name, ftype, sp.get(), H5P_DEFAULT, dcpl.get(), H5P_DEFAULT), H5Dclose);
     check(d.valid(), name);
     size_t n = 1;
     for (auto v : dims) n *= v;
@@ -756,7 +765,8 @@ void write_constraint_spec_group(int64_t parent, const std::string& group, const
                                  const std::string& path) {
   QuietHdf5 quiet;
   {
-    H5Handle g(H5Gcreate2(static_cast<hid_t>(parent), group.c_str(), H5P_DEFAULT, H5P_DEFAULT, H5P_DEFAULT), H5Gclose);
+    H5Handle gcpl(untimed(H5P_GROUP_CREATE), H5Pclose);
+    H5Handle g(H5Gcreate2(static_cast<hid_t>(parent), group.c_str(), H5P_DEFAULT, gcpl.get(), H5P_DEFAULT), H5Gclose);
     if (!g.valid()) fail("{}: cannot create group '{}'", path, group);
     H5Writer gw(g.get());
     gw.attr_string("format", kH5Format);
@@ -764,7 +774,7 @@ void write_constraint_spec_group(int64_t parent, const std::string& group, const
     for (size_t i = 0; i < spec.items.size(); ++i) {
       const ConstraintItem& it = spec.items[i];
       std::string name = fmt::format("item_{:03d}", i);
-      H5Handle ig(H5Gcreate2(g.get(), name.c_str(), H5P_DEFAULT, H5P_DEFAULT, H5P_DEFAULT), H5Gclose);
+      H5Handle ig(H5Gcreate2(g.get(), name.c_str(), H5P_DEFAULT, gcpl.get(), H5P_DEFAULT), H5Gclose);
       H5Writer w(ig.get());
       w.attr_string("type", it.type);
       if (!it.name.empty()) w.attr_string("name", it.name);

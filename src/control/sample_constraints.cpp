@@ -109,7 +109,12 @@ void write_sample_constraints(int64_t file, const std::vector<ConstraintSpec>& s
   if (frames.size() != specs.size())
     throw std::logic_error("write_sample_constraints: one frame count per spec is needed");
   QuietHdf5 quiet;
-  Handle g{H5Gcreate2(static_cast<hid_t>(file), "control", H5P_DEFAULT, H5P_DEFAULT, H5P_DEFAULT), H5Gclose};
+  // No modification times: the same samples give the same bytes.
+  Handle gcpl{H5Pcreate(H5P_GROUP_CREATE), H5Pclose};
+  H5Pset_obj_track_times(gcpl.id, false);
+  Handle dcpl{H5Pcreate(H5P_DATASET_CREATE), H5Pclose};
+  H5Pset_obj_track_times(dcpl.id, false);
+  Handle g{H5Gcreate2(static_cast<hid_t>(file), "control", H5P_DEFAULT, gcpl.id, H5P_DEFAULT), H5Gclose};
   if (g.id < 0) fail("{}: cannot create group /control", path);
   {
     Handle space{H5Screate(H5S_SCALAR), H5Sclose};
@@ -123,7 +128,7 @@ void write_sample_constraints(int64_t file, const std::vector<ConstraintSpec>& s
     H5Awrite(v.id, H5T_NATIVE_INT64, &kFormatVersion);
     hsize_t n = frames.size();
     Handle s1{H5Screate_simple(1, &n, nullptr), H5Sclose};
-    Handle ds{H5Dcreate2(g.id, "frames", H5T_STD_I32LE, s1.id, H5P_DEFAULT, H5P_DEFAULT, H5P_DEFAULT), H5Dclose};
+    Handle ds{H5Dcreate2(g.id, "frames", H5T_STD_I32LE, s1.id, H5P_DEFAULT, dcpl.id, H5P_DEFAULT), H5Dclose};
     if (ds.id < 0 || (n > 0 && H5Dwrite(ds.id, H5T_NATIVE_INT, H5S_ALL, H5S_ALL, H5P_DEFAULT, frames.data()) < 0))
       fail("{}: cannot write /control/frames", path);
   }

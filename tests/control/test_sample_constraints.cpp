@@ -13,6 +13,9 @@
 #include "data/skeleton.h"
 #include "tests/test_util.h"
 
+#include <chrono>
+#include <thread>
+
 using namespace mc;
 using namespace mc::test;
 
@@ -82,6 +85,11 @@ TEST_CASE("per-sample specs round-trip through a motion file's /control group", 
   TempDir dir("control");
   const std::string path = (dir.path / "gen.h5").string();
   write_motion_file(path, m, [&](int64_t f) { write_sample_constraints(f, specs, frames, path); });
+  // The same samples and specs written again give the same bytes (no HDF5 modification times).
+  const std::string again = (dir.path / "gen_again.h5").string();
+  std::this_thread::sleep_for(std::chrono::milliseconds(1100));  // HDF5 times have 1 s resolution
+  write_motion_file(again, m, [&](int64_t f) { write_sample_constraints(f, specs, frames, again); });
+  CHECK(slurp(path) == slurp(again));
   MotionSet back = read_motion_file(path);  // still a valid motion file
   CHECK(back.size() == 3);
   SampleConstraints sc = read_sample_constraints(path);
