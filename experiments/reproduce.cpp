@@ -11,6 +11,7 @@
 
 #include "core/atomic_file.h"
 #include "core/error.h"
+#include "core/source_dir.h"
 #include "data/skeleton.h"
 #include "experiments/experiment.h"
 #include "experiments/prior_health.h"
@@ -46,7 +47,7 @@ static bool selected(const std::string& id, const std::vector<std::string>& want
 
 static std::string git_commit() {
   std::string out;
-  FILE* p = popen(("git -C " + std::string(MOTIONCTL_SOURCE_DIR) + " rev-parse --short HEAD 2>/dev/null").c_str(), "r");
+  FILE* p = popen(("git -C " + source_dir() + " rev-parse --short HEAD 2>/dev/null").c_str(), "r");
   if (!p) return "unknown";
   char buf[64];
   while (fgets(buf, sizeof buf, p)) out += buf;

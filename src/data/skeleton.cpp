@@ -8,6 +8,7 @@
 #include "core/atomic_file.h"
 #include "core/config.h"
 #include "core/error.h"
+#include "core/source_dir.h"
 
 namespace mc {
 namespace fs = std::filesystem;
@@ -163,7 +164,7 @@ std::string skeleton_to_yaml(const Skeleton& s) {
 
 std::string resolve_data_path(const std::string& path) {
   if (path.empty() || fs::path(path).is_absolute() || fs::exists(path)) return path;
-  fs::path in_source = fs::path(MOTIONCTL_SOURCE_DIR) / path;
+  fs::path in_source = fs::path(source_dir()) / path;
   if (fs::exists(in_source)) return in_source.string();
   return path;
 }

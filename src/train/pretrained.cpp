@@ -13,6 +13,7 @@
 
 #include "core/atomic_file.h"
 #include "core/error.h"
+#include "core/source_dir.h"
 
 namespace mc {
 
@@ -22,7 +23,7 @@ fs::path pretrained_root() {
     if (v.empty() || v == "none") return {};
     return v;
   }
-  return fs::path(MOTIONCTL_SOURCE_DIR) / "pretrained";
+  return fs::path(source_dir()) / "pretrained";
 }
 
 std::vector<PretrainedEntry> read_pretrained_manifest(const fs::path& root) {
