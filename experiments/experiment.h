@@ -104,6 +104,7 @@ struct RowConfig : Config {
   std::vector<std::string> protocol_overrides;
   std::string paper_id;   // ours_id in the paper numbers ('' = id)
   std::string paper_section;  // section of the paper row ('' = the first row with that ours_id)
+  int repeats = 0;        // 0 = the profile's; fewer for a row too slow for the profile's budget (DNO)
   void visit(FieldVisitor& v) override {
     v("id", id, "row id, e.g. projflow/euclidean");
     v("label", label, "row label ('' = id)");
@@ -113,6 +114,9 @@ struct RowConfig : Config {
     v("protocol_overrides", protocol_overrides, "path=value overrides of the protocol (after the table's)");
     v("paper_id", paper_id, "ours_id of the matching paper row ('' = id)");
     v("paper_section", paper_section, "section of the matching paper row ('' = first row with that ours_id)");
+    v("repeats", repeats,
+      "replications of this row (0 = the profile's; fewer for a row that cannot fit the profile's budget otherwise)",
+      at_least(0));
   }
   std::string validate() const override {
     if (id.empty()) return "row id is empty";

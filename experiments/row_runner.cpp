@@ -322,7 +322,7 @@ RowResult run_row(const ProfileFile& pf, const TableSpec& table, const RowConfig
   key.evaluator_sha1 = file_sha1(fs::path(ev.evaluator_run()) / "checkpoints" / "final.pt");
   key.trained_configs = profile.trained_configs;
   key.num_samples = table.table.num_samples > 0 ? table.table.num_samples : profile.num_samples;
-  key.repeats = profile.repeats;
+  key.repeats = row.repeats > 0 ? row.repeats : profile.repeats;
   key.mm_texts = table.table.multimodality_texts;
   key.mm_generations = table.table.multimodality_texts > 0 ? table.table.multimodality_generations : 0;
   key.seed = profile.seed;

@@ -240,6 +240,27 @@ MC_REGISTER_PROTOCOL("lifting", LiftingProtocol,
 
 // ---------------------------------------------------------------- ProjFlow's other applications
 
+// The clip whose caption an upper-body edit of clip c asks for: the next clip of c's
+// split (cyclic, in file order) with a different motion program label and a different
+// first caption; without labels, the next one with a different first caption.
+// Deterministic in the data alone, so every row edits towards the same text.
+size_t edit_caption_clip(const MotionSet& data, size_t c) {
+  const std::vector<size_t> split = data.indices_of_split(data.splits[c]);
+  const size_t n = split.size();
+  const size_t at = static_cast<size_t>(std::find(split.begin(), split.end(), c) - split.begin());
+  auto label_of = [&](size_t i) { return i < data.labels.size() ? data.labels[i] : std::string(); };
+  for (bool need_label : {true, false})
+    for (size_t k = 1; k < n; ++k) {
+      const size_t o = split[(at + k) % n];
+      if (data.captions[o].front() == data.captions[c].front()) continue;
+      if (need_label && (label_of(c).empty() || label_of(o) == label_of(c))) continue;
+      return o;
+    }
+  fail("protocol upper_body_edit: no clip of split '{}' other than '{}' has a different caption to edit towards "
+       "({} clips in the split)",
+       data.splits[c], data.ids[c], n);
+}
+
 struct ApplicationProtocol : ControlProtocol {
   std::string application = "upper_body_edit";
   std::vector<int> relative_joints = {20, 21};  // relative: the two hands
@@ -247,10 +268,11 @@ struct ApplicationProtocol : ControlProtocol {
   bool up_to_root_translation = true;
   void visit(FieldVisitor& v) override {
     v("application", application,
-      "upper_body_edit (lower body fixed to the clip), relative (joint offset kept at every frame), "
+      "upper_body_edit (lower body fixed to the clip, caption of another clip of the split), relative (the "
+      "clip's first-frame joint offset held at every frame), "
       "loop (first frame = last frame)",
       one_of({"upper_body_edit", "relative", "loop"}));
-    v("relative_joints", relative_joints, "relative: joints a, b with x_a - x_b fixed to the clip's offset");
+    v("relative_joints", relative_joints, "relative: joints a, b with x_a - x_b held at the clip's first-frame offset");
     v("loop_joints", loop_joints, "loop: joints that close the loop (empty = all)");
     v("up_to_root_translation", up_to_root_translation, "loop: allow the pose to close up to a root translation");
   }
@@ -268,12 +290,19 @@ struct ApplicationProtocol : ControlProtocol {
       item.name = application;
       if (application == "upper_body_edit") {
         item.from_source = true;
-        // a fresh caption is what an edit asks for: the clip's second caption when it has one
-        if (data.captions[c].size() > 1) t.caption = data.captions[c][1];
+        // An edit asks the upper body for a different motion than the clip's: the
+        // caption of another clip (a paraphrase of the clip's own motion would not edit).
+        t.caption = data.captions[edit_caption_clip(data, c)].front();
       } else if (application == "relative") {
         check_joints(data, relative_joints, "relative_joints");
         for (int j : relative_joints) item.joints.push_back(JointRef{j, ""});
-        item.from_source = true;
+        // Fig. 1c holds one offset over the whole motion: the clip's offset at its first
+        // frame (which the clip itself reaches there), kept at every frame.
+        item.axes = {0, 1, 2};
+        item.values.shape = {3};
+        for (int k = 0; k < 3; ++k)
+          item.values.data.push_back(static_cast<double>(data.at(c, 0, relative_joints[0])[k]) -
+                                     data.at(c, 0, relative_joints[1])[k]);
       } else {
         check_joints(data, loop_joints, "loop_joints");
         for (int j : loop_joints) item.joints.push_back(JointRef{j, ""});

@@ -134,8 +134,11 @@ class GuidanceGenerator : public MotionGenerator {
     return to_generated(std::move(r), std::chrono::duration<double>(Clock::now() - t0).count());
   }
   std::string describe() const override {
-    return fmt::format("reconstruction guidance on {} ({} steps, cfg {}, scale {}, {} iterations/step)",
-                       prior_.run_dir(), s_.steps, s_.cfg_scale, g_.scale, g_.iterations);
+    return fmt::format(
+        "reconstruction guidance on {} ({} steps, cfg {}, scale {} on the mean squared residual, {} iterations/step, "
+        "{} in the last {} steps, {})",
+        prior_.run_dir(), s_.steps, s_.cfg_scale, g_.scale, g_.iterations, g_.final_iterations, g_.final_steps,
+        g_.clip_to_residual ? "clipped to the residual" : "unclipped");
   }
 
  private:

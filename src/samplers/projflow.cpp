@@ -235,7 +235,8 @@ GuidanceStepper::GuidanceStepper(const FlowPrior& prior, const GuidanceConfig& c
 torch::Tensor GuidanceStepper::step(const FlowStep& s) {
   torch::Tensor x = s.x;
   const int64_t B = x.size(0);
-  if (cfg_.iterations > 0 && cfg_.scale > 0 && s.t < cfg_.until) {
+  const int iterations = s.index >= s.steps - cfg_.final_steps ? cfg_.final_iterations : cfg_.iterations;
+  if (iterations > 0 && cfg_.scale > 0 && s.t < cfg_.until) {
     std::vector<const LinearObservation*> batch_obs;
     for (int64_t id : s.sample_ids) batch_obs.push_back(&obs_.at(id));
     BatchedObservation rows = batch_observations(batch_obs, x.size(1), x.size(2), x.device());
@@ -244,7 +245,13 @@ torch::Tensor GuidanceStepper::step(const FlowStep& s) {
       auto text = text_.index_select(0, idx);
       auto null = prior_.null_texts(B);
       auto tt = torch::full({B}, s.t, x.options());
-      for (int it = 0; it < cfg_.iterations; ++it) {
+      // Each row's weight 1 / (rows of its sample): the per-sample mean, summed over samples
+      // (samples do not interact, so each sample's gradient is that of its own mean).
+      auto weight = 1.0 / rows.row_count.to(x.dtype()).clamp_min(1.0).index_select(0, rows.sample);
+      // World metres per normalised unit on each axis: the clip compares moves in metres.
+      auto world_per_unit = prior_.net()->joint_std.to(x.device(), x.scalar_type()).view({1, 1, 1, 3});
+      auto valid = s.mask.to(x.dtype()).view({B, -1, 1, 1});
+      for (int it = 0; it < iterations; ++it) {
         torch::AutoGradMode grad_on(true);
         auto xg = x.detach().requires_grad_(true);
         auto v2 = prior_.raw_velocity(torch::cat({xg, xg}), torch::cat({tt, tt}), torch::cat({text, null}),
@@ -252,16 +259,20 @@ torch::Tensor GuidanceStepper::step(const FlowStep& s) {
         auto v = v2.narrow(0, B, B) + cfg_scale_ * (v2.narrow(0, 0, B) - v2.narrow(0, B, B));
         auto x1 = xg + (1 - s.t) * v;  // eq. (5), differentiable in x
         // Residuals are in world units: affine_to_model moved the normaliser into A.
-        auto loss = rows.residual(x1).pow(2).sum();
-        auto g = torch::autograd::grad({loss}, {xg})[0].detach();
-        if (cfg_.normalize) {
-          auto rms = g.pow(2).mean({1, 2, 3}, true).sqrt().clamp_min(1e-12);
-          g = g / rms;
+        auto r = rows.residual(x1);
+        auto loss = (r.pow(2) * weight).sum();
+        auto g = torch::autograd::grad({loss}, {xg})[0].detach() * valid;
+        auto step = cfg_.scale * g;
+        if (cfg_.clip_to_residual) {
+          auto largest_residual =
+              torch::zeros({B}, x.options()).scatter_reduce(0, rows.sample, r.detach().abs(), "amax", true);
+          auto largest_move = (step * world_per_unit).abs().amax({1, 2, 3});
+          auto factor = (largest_residual / largest_move.clamp_min(1e-12)).clamp_max(1.0);
+          step = step * factor.view({B, 1, 1, 1});
         }
-        x = (x - cfg_.scale * g).detach();
+        x = (x - step).detach();
       }
-      auto tt2 = torch::full({B}, s.t, x.options());
-      auto v = prior_.velocity(x, tt2, text, s.mask, cfg_scale_);
+      auto v = prior_.velocity(x, tt, text, s.mask, cfg_scale_);
       return x + (s.t_next - s.t) * v;
     }
   }

@@ -120,18 +120,32 @@ class ProjFlowStepper : public FlowStepper {
 };
 
 // `guidance:` reconstruction guidance (GMD/OmniControl style, reference-facts §4):
-// x <- x - scale * grad_x ||A x1_hat(x) - y||^2 (world units) a few times per step
-// before the Euler update.
+// x <- x - scale * grad_x L(x1_hat(x)) before the Euler update, with L the mean of
+// (A x1_hat - y)^2 over the sample's constrained rows (world units). Averaging rather
+// than summing keeps one step size meaningful from one keyframe to a dense
+// trajectory; the step is clipped so that no joint coordinate moves further (in
+// metres) than the sample's largest residual, which stops a sparse keyframe from
+// overshooting by metres when the step size is large enough for dense tracks.
+// OmniControl runs many more guidance iterations in its last denoising steps
+// (10 per step, 500 in the last 10 of 1000); `final_steps`/`final_iterations` do that.
 struct GuidanceConfig : Config {
-  double scale = 0.1;
+  double scale = 1.0;
   int iterations = 1;
-  double until = 1.0;        // guide steps with t_k < until
-  bool normalize = false;    // per-sample gradient scaled to unit RMS (OmniControl-style stabiliser)
+  int final_steps = 0;        // the last this many sampling steps use final_iterations
+  int final_iterations = 10;
+  double until = 1.0;         // guide steps with t_k < until
+  bool clip_to_residual = true;
   void visit(FieldVisitor& v) override {
-    v("scale", scale, "step size s of the gradient update", at_least(0.0));
+    v("scale", scale, "step size s of the gradient update on the mean squared residual (tuned on val: docs/choices.md)",
+      at_least(0.0));
     v("iterations", iterations, "gradient updates per sampling step", in_range(0, 100));
+    v("final_steps", final_steps, "the last this many sampling steps run final_iterations updates (OmniControl)",
+      at_least(0));
+    v("final_iterations", final_iterations, "gradient updates per step in the last final_steps steps",
+      in_range(0, 1000));
     v("until", until, "guide only while t_k < until", in_range(0.0, 1.0));
-    v("normalize", normalize, "scale each sample's gradient to unit RMS before the step");
+    v("clip_to_residual", clip_to_residual,
+      "clip each update so no joint coordinate moves further (metres) than the sample's largest residual");
   }
 };
 

@@ -262,7 +262,7 @@ TEST_CASE("reconstruction guidance pulls samples toward the constraints; imputat
   auto free = make_generator(fmt::format("generator:\n  type: flow\n  prior: {{run_dir: {}}}\n  sampler: {{steps: 10}}\n", prior));
   auto guided = make_generator(fmt::format(
       "generator:\n  type: flow_guidance\n  prior: {{run_dir: {}}}\n  sampler: {{steps: 10}}\n"
-      "  guidance: {{scale: 0.3, iterations: 2}}\n", prior));
+      "  guidance: {{scale: 10.0, iterations: 2, final_steps: 2}}\n", prior));
   auto gf = free->generate(tasks, 4), gg = guided->generate(tasks, 4);
   double err_free = 0, err_guided = 0;
   for (size_t i = 0; i < tasks.size(); ++i) {
