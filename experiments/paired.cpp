@@ -472,6 +472,7 @@ std::vector<std::string> read_strings(H5::Group& g, const std::string& name) {
   hsize_t n = 0;
   ds.getSpace().getSimpleExtentDims(&n);
   H5::StrType type(H5::PredType::C_S1, H5T_VARIABLE);
+  type.setCset(H5T_CSET_UTF8);  // as written: HDF5 does not convert between character sets
   std::vector<char*> ptrs(n, nullptr);
   if (n > 0) ds.read(ptrs.data(), type);
   std::vector<std::string> out;
