@@ -7,8 +7,10 @@
 #include <vector>
 
 #include "core/config.h"
+#include "control/control_task.h"
 #include "core/run_dir.h"
 #include "eval/evaluation.h"
+#include "experiments/paired.h"
 
 namespace mc {
 
@@ -74,6 +76,8 @@ struct TableConfig : Config {
   int num_samples = 0;        // 0 = the profile's
   int multimodality_texts = 0;        // > 0: T2M's separate multimodality pass over this many texts
   int multimodality_generations = 10;  // generations per text in that pass
+  std::string foot_skating = "padded_196";  // which convention the foot_skating column shows
+  std::vector<std::string> differences;     // remaining differences from the paper's protocol (caption)
   void visit(FieldVisitor& v) override {
     v("id", id, "table id, e.g. projflow/table1");
     v("title", title, "caption");
@@ -86,6 +90,11 @@ struct TableConfig : Config {
       "texts of the separate multimodality pass (T2M: 100 texts x 30 generations; 0 = no pass)", at_least(0));
     v("multimodality_generations", multimodality_generations, "generations per text in the multimodality pass",
       at_least(2));
+    v("foot_skating", foot_skating,
+      "frames of the foot_skating column: padded_196 (the published OmniControl/GMD script: all 196 stored frames, "
+      "/ 195) or valid_frames (the clip's own frames); the other one is shown as a labelled extra column",
+      one_of({"padded_196", "valid_frames"}));
+    v("differences", differences, "differences from the paper's protocol that remain (listed in the caption)");
   }
   std::string validate() const override {
     if (id.empty()) return "table.id is empty";
@@ -138,6 +147,7 @@ struct RowResult {
   std::map<std::string, std::vector<double>> values;  // metric -> one value per replicate
   std::vector<std::string> notes;                     // e.g. trainable parameter counts
   std::vector<std::string> components;  // run directories of the trained components the generator used
+  RowSamples samples;                   // per task and replicate (samples.h5): what paired tests resample
   bool cached = false;
 };
 
@@ -153,6 +163,13 @@ struct ResolvedRow {
   std::string generator_yaml, protocol_yaml;  // dumps (part of the cache key)
 };
 ResolvedRow resolve_row(const ProfileConfig& profile, const TableSpec& table, const RowConfig& row);
+
+// Per-sample metrics of one replicate (what samples.h5 keeps): control errors, both
+// foot-skating conventions, lifting errors over every camera item (MPJPE on the first,
+// the keypose), per-sample matching and R-precision hits in the pools of `seed`.
+std::map<std::string, std::vector<double>> row_sample_metrics(const MotionSet& generated, const EvalEmbeddings& emb,
+                                                             const std::vector<ControlTask>& tasks,
+                                                             const EvalProtocol& proto, uint64_t seed);
 
 // Generates `repeats` replicate sample sets for the row's tasks, evaluates each
 // and writes runs/experiments/<profile>/rows/<row>-<hash>/ (config, samples_r*.h5,

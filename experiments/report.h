@@ -35,7 +35,17 @@ struct TableResult {
   std::vector<RowResult> rows;
   double seconds = 0;
   std::string health;  // Markdown line on the health of the priors its rows used ('' = none checked)
+  std::string evaluator;     // evaluator run the table was scored with ('' = unknown)
+  int num_samples = 0, repeats = 0;
 };
+
+// The columns a table shows: its spec's, each followed by its labelled companions when
+// some row has them (fid: the ground-truth floor at the same N, KID and its floor;
+// group-averaged metrics: the pooled mean; foot_skating: the other frame convention).
+std::vector<std::string> display_columns(const TableResult& t);
+// The caption under a table: evaluator, N, replicates, averaging and frame conventions,
+// and every remaining difference from the paper's protocol.
+std::string table_caption(const TableResult& t);
 
 struct RenderedTable {
   std::string markdown, csv, latex;
@@ -53,10 +63,17 @@ void write_results_h5(const std::string& path, const std::vector<TableResult>& t
 
 // A claim of a paper checked on our numbers (experiments/claims.yaml).
 struct ClaimCheck {
-  std::string id, text, table, verdict;  // verdict: holds | does not hold | not run
-  std::string evidence;                  // numbers and CI overlap
+  std::string id, text, table, verdict;  // verdict: holds | contradicted | undecided | not run
+  std::string evidence;                  // the paired difference, its 95% interval and how it was drawn
+  std::string power;                     // undecided: the samples that would decide it at the observed effect
 };
-std::vector<ClaimCheck> check_claims(const std::string& claims_file, const std::vector<TableResult>& tables);
+struct ClaimOptions {
+  const RealismReference* reference = nullptr;  // FID/KID on resampled samples (nullptr: replicate fallback)
+  const EvalProtocol* protocol = nullptr;       // diversity pairs (nullptr: defaults)
+  BootstrapOptions bootstrap;
+};
+std::vector<ClaimCheck> check_claims(const std::string& claims_file, const std::vector<TableResult>& tables,
+                                     const ClaimOptions& options = {});
 std::string render_summary(const std::vector<ClaimCheck>& claims, const std::vector<TableResult>& tables,
                            const std::string& profile, double seconds, const std::string& commit);
 

@@ -98,6 +98,9 @@ ReproduceResult reproduce(const ReproduceOptions& opt) {
     auto ts = std::chrono::steady_clock::now();
     TableResult tr;
     tr.spec = spec;
+    tr.evaluator = ev.evaluator_run();
+    tr.num_samples = spec.table.num_samples > 0 ? spec.table.num_samples : pf.profile.num_samples;
+    tr.repeats = pf.profile.repeats;
     if (!spec.table.paper_numbers.empty()) {
       std::string pn = resolve_data_path(spec.table.paper_numbers);
       if (!fs::exists(pn)) fail("{}: table.paper_numbers '{}' does not exist", spec.file, spec.table.paper_numbers);
@@ -153,9 +156,15 @@ ReproduceResult reproduce(const ReproduceOptions& opt) {
   double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   std::vector<ClaimCheck> claims;
   fs::path claims_file = fs::path(resolve_data_path(opt.specs_root)) / "claims.yaml";
-  if (fs::exists(claims_file)) claims = check_claims(claims_file.string(), results);
+  ClaimOptions co;
+  co.reference = &ev.realism();
+  co.protocol = &pf.protocol;
+  if (fs::exists(claims_file)) claims = check_claims(claims_file.string(), results, co);
   for (auto& c : claims)
-    (c.verdict == "holds" ? res.claims_hold : c.verdict == "does not hold" ? res.claims_fail : res.claims_not_run)++;
+    (c.verdict == "holds"          ? res.claims_hold
+     : c.verdict == "contradicted" ? res.claims_contradicted
+     : c.verdict == "undecided"    ? res.claims_undecided
+                                   : res.claims_not_run)++;
   std::string summary = render_summary(claims, results, pf.profile.name, seconds, commit);
   if (res.priors_checked > 0)
     summary += fmt::format("\nPrior health ([health.md](health.md)): {} of {} trained priors and tokenizers healthy "

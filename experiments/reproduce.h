@@ -19,7 +19,7 @@ struct ReproduceResult {
   std::string results_dir;
   std::vector<std::string> table_files;  // Markdown per table
   std::vector<std::string> failures;     // "table/row: message"
-  int claims_hold = 0, claims_fail = 0, claims_not_run = 0;
+  int claims_hold = 0, claims_contradicted = 0, claims_undecided = 0, claims_not_run = 0;
   std::string health_file;             // results/<profile>/health.md
   int priors_checked = 0, priors_healthy = 0;
 };

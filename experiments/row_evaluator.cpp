@@ -22,12 +22,47 @@ RowEvaluator::RowEvaluator(const ProfileConfig& profile) {
   }
   data_ = read_motion_file(data_path_);
   split_ = data_.indices_of_split(profile.split);
+  split_name_ = profile.split;
   if (split_.empty()) fail("{}: the {} split is empty; choose another profile.split", profile.data, profile.split);
   reference_ = data_.subset(split_);
   TrainResult r = run_train(resolve_data_path(profile.evaluator), {});
   evaluator_run_ = r.run_dir.string();
   evaluator_ = std::make_unique<T2MEvaluator>(T2MEvaluator::load(evaluator_run_));
   reference_embeddings_ = evaluator_->embed_motions(reference_, profile.data);
+  realism_ = RealismReference(reference_embeddings_);
+}
+
+EvalEmbeddings RowEvaluator::embed(const MotionSet& generated) const {
+  EvalEmbeddings e;
+  e.gt_motion = reference_embeddings_;
+  e.motion = evaluator_->embed_motions(generated, "generated motions");
+  for (size_t i = 0; i < generated.size(); ++i) e.captions.push_back(generated.captions[i].at(0));
+  e.text = evaluator_->embed_texts(e.captions);
+  return e;
+}
+
+std::map<std::string, double> RowEvaluator::t2m(const EvalEmbeddings& e, const EvalProtocol& p, uint64_t seed) const {
+  return t2m_metrics(e, p, seed);
+}
+
+std::pair<double, double> RowEvaluator::realism_floor(int n) const {
+  auto it = floors_.find(n);
+  if (it != floors_.end()) return it->second;
+  // Held-out clips: the first n of the val split, else of train (never the reference split).
+  std::vector<size_t> held;
+  for (const char* split : {"val", "train", "test"}) {
+    if (split == split_name_) continue;
+    held = data_.indices_of_split(split);
+    if (held.size() >= static_cast<size_t>(n)) break;
+  }
+  if (held.size() < static_cast<size_t>(std::max(n, 2)))
+    fail("{}: the ground-truth floor at N = {} needs {} held-out clips (val or train split), found {}", data_path_, n,
+         n, held.size());
+  held.resize(n);
+  Embeddings e = evaluator_->embed_motions(data_.subset(held), "held-out ground truth");
+  auto v = std::make_pair(realism_.fid(e), realism_.kid(e));
+  floors_[n] = v;
+  return v;
 }
 
 std::vector<ControlTask> RowEvaluator::tasks(const ControlProtocol& protocol, int n, uint64_t seed) const {
@@ -40,12 +75,7 @@ std::vector<ControlTask> RowEvaluator::tasks(const ControlProtocol& protocol, in
 
 std::map<std::string, double> RowEvaluator::t2m(const MotionSet& generated, const EvalProtocol& p,
                                                 uint64_t seed) const {
-  EvalEmbeddings e;
-  e.gt_motion = reference_embeddings_;
-  e.motion = evaluator_->embed_motions(generated, "generated motions");
-  for (size_t i = 0; i < generated.size(); ++i) e.captions.push_back(generated.captions[i].at(0));
-  e.text = evaluator_->embed_texts(e.captions);
-  return t2m_metrics(e, p, seed);
+  return t2m_metrics(embed(generated), p, seed);
 }
 
 double RowEvaluator::multimodality(const MotionSet& generated, int texts, int per_text, int pairs,

@@ -10,6 +10,7 @@
 #include "eval/evaluation.h"
 #include "eval/t2m_evaluator.h"
 #include "experiments/experiment.h"
+#include "experiments/paired.h"
 
 namespace mc {
 
@@ -23,6 +24,15 @@ class RowEvaluator {
   std::vector<ControlTask> tasks(const ControlProtocol& protocol, int n, uint64_t seed) const;
   // One replication of the evaluator metrics of `generated` against the split.
   std::map<std::string, double> t2m(const MotionSet& generated, const EvalProtocol& p, uint64_t seed) const;
+  // The evaluator embeddings of `generated` (motions and their first captions) against the split.
+  EvalEmbeddings embed(const MotionSet& generated) const;
+  std::map<std::string, double> t2m(const EvalEmbeddings& e, const EvalProtocol& p, uint64_t seed) const;
+  // FID and KID of n held-out ground-truth clips (the first n of another split) against
+  // the reference split: the floor a perfect generator reaches at the same N (the
+  // GT-vs-GT floor `motionctl health` reports). Cached per n.
+  std::pair<double, double> realism_floor(int n) const;
+  // The reference split's embeddings prepared for FID/KID on resampled samples.
+  const RealismReference& realism() const { return realism_; }
   // T2M's multimodality of `generated` = `texts` groups of `per_text` consecutive
   // generations of one text each (`pairs` pairs per group).
   double multimodality(const MotionSet& generated, int texts, int per_text, int pairs, uint64_t seed) const;
@@ -34,9 +44,11 @@ class RowEvaluator {
  private:
   MotionSet data_, reference_;
   std::vector<size_t> split_;
-  std::string data_path_, evaluator_run_;
+  std::string data_path_, evaluator_run_, split_name_;
   std::unique_ptr<T2MEvaluator> evaluator_;
   Embeddings reference_embeddings_;
+  RealismReference realism_;
+  mutable std::map<int, std::pair<double, double>> floors_;
 };
 
 }  // namespace mc

@@ -107,7 +107,11 @@ struct RowRunKey : Config {
   int num_samples = 0, repeats = 0, mm_texts = 0, mm_generations = 0;
   int64_t seed = 0;
   EvalProtocol eval;
+  // What a finished run holds: 2 = samples.h5 with per-sample records (paired tests),
+  // group-mean headline values, both foot-skating conventions, KID and the GT floor.
+  int record_version = 2;
   void visit(FieldVisitor& v) override {
+    v("record_version", record_version, "what a finished row run holds (bumped when that changes)");
     v("generator", generator, "resolved generator");
     v("protocol", protocol, "resolved protocol");
     v("data", data, "ground-truth file");
@@ -141,91 +145,142 @@ static std::vector<int> item_frames(const FrameSelection& f, int T) {
   return out;
 }
 
-// Metrics of one replicate: evaluator metrics, control metrics overall and per
-// task group (and per component of a group path "a=1/b=2"), foot skating, lifting.
-static std::map<std::string, double> replicate_metrics(RowEvaluator& ev, const MotionSet& gen,
-                                                       const std::vector<ControlTask>& tasks,
-                                                       const EvalProtocol& proto, uint64_t seed) {
-  std::map<std::string, double> out = ev.t2m(gen, proto, seed);
+// Per-sample metrics of one replicate (the record paired tests resample):
+// control errors (avg_err, traj_err, loc_err per threshold, control_error with its
+// entry count), foot skating under both frame conventions, the lifting errors, and
+// the T2M per-sample quantities (matching, R-precision hits in the replicate's pools).
+// NaN where a metric does not apply to a sample (a task without that control).
+std::map<std::string, std::vector<double>> row_sample_metrics(const MotionSet& gen, const EvalEmbeddings& emb,
+                                                             const std::vector<ControlTask>& tasks,
+                                                             const EvalProtocol& proto, uint64_t seed) {
+  const size_t n = tasks.size();
   const Skeleton& skel = gen.skeleton;
   const int J = gen.num_joints();
-  std::vector<JointsView> clips;
-  for (size_t i = 0; i < gen.size(); ++i) clips.push_back(joints_view(gen, i));
-  FootSkatingOptions fo;
-  fo.fps = gen.fps;
-  fo.padded_196 = proto.foot_skating_padded_196;
-  out["foot_skating"] = foot_skating_ratio(clips, skel, fo);
-
-  std::map<std::string, std::vector<std::vector<double>>> errors;  // group filter -> per-sample entry errors
-  std::vector<LiftingSample> lifting;
-  std::vector<std::vector<float>> gt_store(tasks.size());
-  std::vector<std::vector<uint8_t>> mask_store(tasks.size());
-  for (size_t i = 0; i < tasks.size(); ++i) {
+  const double nan = std::nan("");
+  std::map<std::string, std::vector<double>> out = per_sample_t2m(emb.text, emb.motion, proto.r_precision_pool, seed);
+  auto col = [&](const std::string& k) -> std::vector<double>& {
+    auto& v = out[k];
+    if (v.empty()) v.assign(n, nan);
+    return v;
+  };
+  FootSkatingOptions valid, padded;
+  valid.fps = padded.fps = gen.fps;
+  padded.padded_196 = true;
+  const std::vector<int>& toes = skel.role("toes");
+  for (size_t i = 0; i < n; ++i) {
+    const JointsView clip = joints_view(gen, i);
+    col("foot_skating_valid")[i] = foot_skating_ratio(clip, toes, valid);
+    // The published convention needs 196 stored frames; shorter stores score their own frames.
+    col("foot_skating_padded")[i] = clip.frames >= padded.padded_length ? foot_skating_ratio(clip, toes, padded)
+                                                                        : col("foot_skating_valid")[i];
+  }
+  const double th0 = proto.control_thresholds.front();
+  for (size_t i = 0; i < n; ++i) {
     const ControlTask& task = tasks[i];
     if (task.spec.items.empty()) continue;
-    LinearObservation obs = compile(task.spec, gen.lengths[i], skel, task.source.empty() ? nullptr : task.source.data());
+    const int T = gen.lengths[i];
+    LinearObservation obs = compile(task.spec, T, skel, task.source.empty() ? nullptr : task.source.data());
     std::vector<double> e = observation_entry_errors(obs, gen.clip(i));
-    errors[""].push_back(e);
-    if (!task.group.empty()) {
-      errors[task.group].push_back(e);
-      size_t start = 0;
-      while (true) {
-        size_t slash = task.group.find('/', start);
-        std::string part = task.group.substr(start, slash == std::string::npos ? std::string::npos : slash - start);
-        if (part != task.group) errors[part].push_back(e);
-        if (slash == std::string::npos) break;
-        start = slash + 1;
+    if (!e.empty()) {
+      double sum = 0;
+      for (double x : e) sum += x;
+      col("avg_err")[i] = sum / e.size();
+      col("control_error")[i] = sum / e.size();
+      col("control_entries")[i] = static_cast<double>(e.size());
+      for (double th : proto.control_thresholds) {
+        size_t over = 0;
+        for (double x : e) over += x > th;
+        const double traj = over > 0 ? 1.0 : 0.0, loc = static_cast<double>(over) / e.size();
+        if (th == th0) col("traj_err")[i] = traj, col("loc_err")[i] = loc;
+        col(fmt::format("traj_err_{:g}cm", th * 100))[i] = traj;
+        col(fmt::format("loc_err_{:g}cm", th * 100))[i] = loc;
       }
     }
-    // 2D-to-3D lifting metrics for the first camera item of the task.
+    // 2D-to-3D lifting: MPJPE on the keypose item's frames (the first camera item), the
+    // Avg.Err over the controlled entries of every camera item (keypose and 2D trajectory).
+    const ConstraintItem* first = nullptr;
+    std::vector<uint8_t> mask;
     for (const auto& item : task.spec.items) {
       if (item.type != "camera_2d" || task.source.empty()) continue;
-      const int T = gen.lengths[i];
-      LiftingSample s;
-      // The lifting metrics compare the valid frames only: a view of exactly T frames.
-      s.prediction = JointsView{gen.clip(i), T, J, T};
-      gt_store[i] = task.source;
-      s.ground_truth = joints_view(gt_store[i], T, J);
-      s.camera = OrthoCamera{item.camera.scale, item.camera.pitch_deg * M_PI / 180.0,
-                             item.camera.yaw_deg * M_PI / 180.0, item.camera.roll_deg * M_PI / 180.0};
-      s.target_2d = project_motion(s.camera, s.ground_truth);
-      s.keyframes = item_frames(item.frames, T);
-      mask_store[i].assign(static_cast<size_t>(T) * J, 0);
+      if (!first) {
+        first = &item;
+        mask.assign(static_cast<size_t>(T) * J, 0);
+      } else if (item.camera.scale != first->camera.scale || item.camera.pitch_deg != first->camera.pitch_deg ||
+                 item.camera.yaw_deg != first->camera.yaw_deg || item.camera.roll_deg != first->camera.roll_deg) {
+        fail("task '{}': its camera items use different cameras; the lifting metrics need one camera per task",
+             task.id);
+      }
       std::vector<int> joints;
       if (item.joints.empty())
         for (int j = 0; j < J; ++j) joints.push_back(j);
       else
         for (const auto& r : item.joints) joints.push_back(r.name.empty() ? r.index : skel.joint_index(r.name));
-      for (int t : s.keyframes)
-        for (int j : joints) mask_store[i][static_cast<size_t>(t) * J + j] = 1;
-      s.controlled = mask_view(mask_store[i], T, J, 1);
-      lifting.push_back(s);
-      break;
+      for (int t : item_frames(item.frames, T))
+        for (int j : joints) mask[static_cast<size_t>(t) * J + j] = 1;
+    }
+    if (first) {
+      LiftingSample s;
+      s.prediction = JointsView{gen.clip(i), T, J, T};  // the valid frames only
+      s.ground_truth = joints_view(task.source, T, J);
+      s.camera = OrthoCamera{first->camera.scale, first->camera.pitch_deg * M_PI / 180.0,
+                             first->camera.yaw_deg * M_PI / 180.0, first->camera.roll_deg * M_PI / 180.0};
+      s.target_2d = project_motion(s.camera, s.ground_truth);
+      s.keyframes = item_frames(first->frames, T);
+      s.controlled = mask_view(mask, T, J, 1);
+      LiftingMetrics lm = lifting_metrics({s}, skel.root());
+      col("mpjpe_2d")[i] = lm.mpjpe_2d;
+      col("mpjpe_3d")[i] = lm.mpjpe_3d;
+      col("avg_err_2d")[i] = lm.avg_err_2d;
+      col("avg_err_3d")[i] = lm.avg_err_3d;
     }
   }
-  ControlOptions co;
-  co.thresholds = proto.control_thresholds;
-  for (auto& [group, errs] : errors) {
-    ControlMetrics cm = control_metrics_from_errors(errs, co);
-    std::string suffix = group.empty() ? "" : "@" + group;
-    out["traj_err" + suffix] = cm.traj_err;
-    out["loc_err" + suffix] = cm.loc_err;
-    out["avg_err" + suffix] = cm.avg_err;
-    out["control_error" + suffix] = cm.control_error;
-    if (group.empty())
-      for (auto& rate : cm.rates) {
-        out[fmt::format("traj_err_{:g}cm", rate.threshold * 100)] = rate.traj_err;
-        out[fmt::format("loc_err_{:g}cm", rate.threshold * 100)] = rate.loc_err;
-      }
-  }
-  if (!lifting.empty()) {
-    LiftingMetrics lm = lifting_metrics(lifting, skel.root());
-    out["mpjpe_2d"] = lm.mpjpe_2d;
-    out["mpjpe_3d"] = lm.mpjpe_3d;
-    out["avg_err_2d"] = lm.avg_err_2d;
-    out["avg_err_3d"] = lm.avg_err_3d;
-  }
   return out;
+}
+
+// Table numbers of one replicate: the evaluator's T2M metrics, KID and the ground-truth
+// FID/KID floor at the same N, and every per-sample metric averaged as the papers do
+// (headline_value: mean over task groups of group means) with the pooled mean as an
+// extra `<metric>_pooled`; control metrics also per task group and group component.
+static std::map<std::string, double> replicate_metrics(RowEvaluator& ev, const EvalEmbeddings& emb,
+                                                       const std::map<std::string, std::vector<double>>& per_sample,
+                                                       const std::vector<ControlTask>& tasks,
+                                                       const EvalProtocol& proto, uint64_t seed) {
+  std::map<std::string, double> out = ev.t2m(emb, proto, seed);
+  out["kid"] = ev.realism().kid(emb.motion);
+  auto [fid_floor, kid_floor] = ev.realism_floor(static_cast<int>(tasks.size()));
+  out["fid_floor"] = fid_floor;
+  out["kid_floor"] = kid_floor;
+  std::vector<std::string> groups;
+  std::set<std::string> filters;
+  for (const auto& t : tasks) {
+    groups.push_back(t.group);
+    if (t.group.empty()) continue;
+    filters.insert(t.group);
+    size_t start = 0;
+    while (true) {
+      size_t slash = t.group.find('/', start);
+      filters.insert(t.group.substr(start, slash == std::string::npos ? std::string::npos : slash - start));
+      if (slash == std::string::npos) break;
+      start = slash + 1;
+    }
+  }
+  for (const auto& [k, _] : per_sample) {
+    if (!group_averaged_metric(k)) continue;
+    if (auto v = headline_value(per_sample, groups, k)) out[k] = *v;
+    if (auto v = headline_value(per_sample, groups, k, true)) out[k + "_pooled"] = *v;
+  }
+  for (const std::string& f : filters)
+    for (const char* k : {"traj_err", "loc_err", "avg_err", "control_error"})
+      if (auto v = headline_value(per_sample, groups, std::string(k) + "@" + f)) out[std::string(k) + "@" + f] = *v;
+  return out;
+}
+
+// The foot_skating column and per-sample metric under the table's frame convention.
+static void alias_foot_skating(RowResult& r, const std::string& convention) {
+  const std::string src = convention == "valid_frames" ? "foot_skating_valid" : "foot_skating_padded";
+  if (r.values.count(src)) r.values["foot_skating"] = r.values.at(src);
+  for (auto& m : r.samples.metrics)
+    if (m.count(src)) m["foot_skating"] = m.at(src);
 }
 
 // The first `k` samples of a replicate with what figures need to draw them
@@ -336,8 +391,10 @@ RowResult run_row(const ProfileFile& pf, const TableSpec& table, const RowConfig
   std::string yaml = dump_config(key);
   RunDir run = RunDir::open(rc, yaml, {}, sanitize_name(row.id) + "-" + config_hash(key));
   result.run_dir = run.path().string();
-  if (run.finished() && fs::exists(run.path() / "metrics.h5")) {
+  if (run.finished() && fs::exists(run.path() / "metrics.h5") && fs::exists(run.path() / "samples.h5")) {
     result.values = read_metric_results(run.path().string());
+    result.samples = read_row_samples((run.path() / "samples.h5").string());
+    alias_foot_skating(result, table.table.foot_skating);
     result.cached = true;
     if (fs::exists(run.path() / "notes.txt")) {
       std::ifstream in(run.path() / "notes.txt");
@@ -362,6 +419,10 @@ RowResult run_row(const ProfileFile& pf, const TableSpec& table, const RowConfig
   result.generator_description = gen->describe();
   run.log().info(fmt::format("row {}: {} on {} tasks x {} replicates", row.id, result.generator_description,
                              tasks.size(), key.repeats));
+  for (const auto& t : tasks) {
+    result.samples.task_ids.push_back(t.id + "|" + t.clip_id);
+    result.samples.groups.push_back(t.group);
+  }
   for (int r = 0; r < key.repeats; ++r) {
     const uint64_t seed = static_cast<uint64_t>(profile.seed) + 1000ull * r;
     GeneratedMotions g = gen->generate(tasks, seed);
@@ -372,7 +433,13 @@ RowResult run_row(const ProfileFile& pf, const TableSpec& table, const RowConfig
     }
     m.provenance = Provenance{"motionctl reproduce", MOTIONCTL_VERSION, static_cast<int64_t>(seed), yaml, utc_timestamp()};
     write_motion_file((run.path() / fmt::format("samples_r{}.h5", r)).string(), m);
-    auto metrics = replicate_metrics(ev, m, tasks, pf.protocol, seed);
+    EvalEmbeddings emb = ev.embed(m);
+    auto per_sample = row_sample_metrics(m, emb, tasks, pf.protocol, seed);
+    auto metrics = replicate_metrics(ev, emb, per_sample, tasks, pf.protocol, seed);
+    result.samples.motion.push_back(emb.motion);
+    result.samples.text.push_back(emb.text);
+    result.samples.seeds.push_back(seed);
+    result.samples.metrics.push_back(std::move(per_sample));
     metrics["time_per_sample"] = g.seconds / std::max<size_t>(1, tasks.size());
     metrics["throughput"] = static_cast<double>(tasks.size()) / std::max(g.seconds, 1e-9);
     for (auto& [k, v] : g.stats) metrics[k] = v;
@@ -403,6 +470,8 @@ RowResult run_row(const ProfileFile& pf, const TableSpec& table, const RowConfig
   for (auto& c : result.components) comps += c + "\n";
   write_file_atomic(run.path() / "components.txt", comps);
   write_metric_results(run.path().string(), result.values);
+  write_row_samples((run.path() / "samples.h5").string(), result.samples);
+  alias_foot_skating(result, table.table.foot_skating);
   std::map<std::string, double> summary;
   for (auto& [k, v] : result.values) summary[k] = summarize(v).mean;
   run.mark_finished(summary);

@@ -21,8 +21,9 @@ void add_reproduce_command(CLI::App& app) {
     ReproduceResult r = reproduce(*opt);
     std::cout << fmt::format("\ntables ({}):\n", r.table_files.size());
     for (auto& f : r.table_files) std::cout << "  " << f << "\n";
-    std::cout << fmt::format("summary: {}/summary.md  (claims: {} hold, {} do not hold, {} not run)\n", r.results_dir,
-                             r.claims_hold, r.claims_fail, r.claims_not_run);
+    std::cout << fmt::format("summary: {}/summary.md  (claims: {} hold, {} contradicted, {} undecided, {} not run)\n",
+                             r.results_dir, r.claims_hold, r.claims_contradicted, r.claims_undecided,
+                             r.claims_not_run);
     std::cout << fmt::format("raw metrics: {}/results.h5\n", r.results_dir);
     if (r.priors_checked > 0)
       std::cout << fmt::format("prior health: {} ({} of {} healthy)\n", r.health_file, r.priors_healthy,

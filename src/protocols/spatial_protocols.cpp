@@ -47,7 +47,9 @@ std::vector<int> draw_frames(Rng& rng, int T, int count) {
 struct Density {
   int count = 0;          // > 0: this many frames
   double fraction = 0.0;  // else this fraction of the frames (at least one)
-  int frames(int T) const { return count > 0 ? std::min(count, T) : std::max(1, static_cast<int>(std::lround(fraction * T))); }
+  // Fractions floor, as OmniControl's int(length * ratio) does (49 of 196 frames at 25%,
+  // 24 of 99 where rounding gave 25); at least one frame.
+  int frames(int T) const { return count > 0 ? std::min(count, T) : std::max(1, static_cast<int>(fraction * T)); }
   std::string label() const { return count > 0 ? std::to_string(count) : fmt::format("{:g}%", fraction * 100); }
 };
 std::vector<Density> densities_of(const std::vector<int>& counts, const std::vector<double>& fractions) {

@@ -298,7 +298,11 @@ TEST_CASE("spatial protocols: OmniControl densities, lifting cameras, applicatio
       const int n = static_cast<int>(it.frames.list.size());
       const std::string d = t.group.substr(t.group.find("density=") + 8);
       if (d == "100%") CHECK(n == t.length);
-      else if (d == "25%") CHECK(n == static_cast<int>(std::lround(0.25 * t.length)));
+      else if (d == "25%") {
+        // Floored as OmniControl's int(T * 0.25): 12 frames of the 50-frame clip, not 13.
+        CHECK(n == t.length / 4);
+        if (t.length == 50) CHECK(n == 12);
+      }
       else CHECK(n == std::stoi(d));
       CHECK(std::is_sorted(it.frames.list.begin(), it.frames.list.end()));
       compile(t.spec, t.length, data.skeleton, t.source.data());  // compiles
