@@ -22,8 +22,18 @@ deps:
 	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$missing; \
 	else echo "all packages present"; fi
 
+# ccache, when the machine has it, shares objects across clones and worktrees: paths
+# under the checkout are hashed relative to it and the checkout's own path is
+# compiled into one file only (src/core/source_dir.cpp).
+CCACHE := $(shell command -v ccache 2>/dev/null)
+ifneq ($(CCACHE),)
+LAUNCHER := -DCMAKE_CXX_COMPILER_LAUNCHER=$(CCACHE)
+export CCACHE_BASEDIR := $(CURDIR)
+export CCACHE_SLOPPINESS := pch_defines,time_macros,include_file_mtime,include_file_ctime
+endif
+
 build: deps
-	@cmake -S . -B $(BUILD) -DCMAKE_BUILD_TYPE=Release -DPYTHON=$(PYTHON) > $(BUILD).cmake.log 2>&1 || (cat $(BUILD).cmake.log; exit 1)
+	@cmake -S . -B $(BUILD) -DCMAKE_BUILD_TYPE=Release -DPYTHON=$(PYTHON) $(LAUNCHER) > $(BUILD).cmake.log 2>&1 || (cat $(BUILD).cmake.log; exit 1)
 	cmake --build $(BUILD) -j$(JOBS)
 
 test: build
