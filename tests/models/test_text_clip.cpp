@@ -261,9 +261,10 @@ TEST_CASE("text_clip_tiny trains and retrieves val motions from their captions w
   INFO("val_top1 " << r.summary["val_top1"] << " val_top3 " << r.summary["val_top3"] << " val_nce "
                    << r.summary["val_nce"] << " temperature " << r.summary["temperature"]);
   REQUIRE(r.summary["val_pools"] >= 1);
-  const double chance3 = 3.0 / 32.0;
-  CHECK(r.summary["val_top3"] > 3 * chance3);
-  CHECK(r.summary["val_top1"] > 3 * (1.0 / 32.0));
+  // One pool of 32 val clips; chance is 3/32 (top-3) and 1/32 (top-1). Measured:
+  // 0.875 and 0.625 (deterministic for this config and seed).
+  CHECK(r.summary["val_top3"] > 0.5);
+  CHECK(r.summary["val_top1"] > 0.25);
   CHECK(r.summary["val_nce"] < std::log(32.0));  // better than uniform logits
   CHECK(fs::exists(r.run_dir / "outputs" / "vocab.txt"));
 }
