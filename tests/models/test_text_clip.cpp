@@ -323,6 +323,18 @@ TEST_CASE("flow_tiny with model.text_encoder: trains text_clip on demand, keeps 
   }
   INFO(moved << " of " << total << " non-text parameters moved");
   CHECK(moved == total);
+  // Same config with the text_clip run already finished: the same prior (training it
+  // on demand must not disturb the prior's random stream).
+  std::vector<std::string> ov2 = ov;
+  for (auto& o : ov2)
+    if (o == "run.name=prior") o = "run.name=prior2";
+  TrainResult r2 = run_train("configs/prior/flow_tiny.yaml", ov2);
+  {
+    FlowPrior again = FlowPrior::load(r2.run_dir.string());
+    auto pa = prior.net()->parameters(), pb = again.net()->parameters();
+    REQUIRE(pa.size() == pb.size());
+    for (size_t i = 0; i < pa.size(); ++i) CHECK(torch::equal(pa[i], pb[i]));
+  }
   auto cond = prior.encode_texts({"a person walks forward", "a person jumps"});
   CHECK(cond.sizes() == torch::IntArrayRef({2, 128}));
   CHECK(torch::isfinite(cond).all().item<bool>());
