@@ -550,6 +550,7 @@ class Writer : public FieldVisitor {
   MC_FIELD_TYPES(MC_WRITE)
 #undef MC_WRITE
   void section(const char* name, Config& c, const char*) override {
+    if (c.omitted_from_dump()) return;
     e_ << YAML::Key << name << YAML::Value << YAML::BeginMap;
     c.visit(*this);
     e_ << YAML::EndMap;

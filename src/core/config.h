@@ -78,6 +78,11 @@ struct Config {
   virtual ~Config() = default;
   virtual void visit(FieldVisitor& v) = 0;
   virtual std::string validate() const { return ""; }
+  // True when this section, used as a field of another, is in its "off" state and
+  // should be left out of dumps (and so of config hashes): an optional section
+  // added later keeps the names of every run trained before it existed. Reading
+  // an absent section gives its defaults, so the dump still parses back the same.
+  virtual bool omitted_from_dump() const { return false; }
 };
 
 // A polymorphic section: `type` names a registered config struct.

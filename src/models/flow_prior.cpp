@@ -5,9 +5,13 @@
 #include <ATen/CPUGeneratorImpl.h>
 #include <yaml-cpp/yaml.h>
 
+#include <iostream>
+#include <optional>
+
 #include "core/atomic_file.h"
 #include "core/error.h"
 #include "data/skeleton.h"
+#include "models/text_clip.h"
 #include "train/trainable.h"
 
 namespace mc {
@@ -41,63 +45,37 @@ FlowTransformerOptions FlowPriorConfig::transformer_options(int num_joints) cons
   return o;
 }
 
-// ---------------------------------------------------------------- text
-
-FlowTextEncoderImpl::FlowTextEncoderImpl(int vocab_size, const FlowPriorConfig& c) {
-  embedding = register_module("embedding",
-                              nn::Embedding(nn::EmbeddingOptions(vocab_size, c.text_width).padding_idx(TextVocab::kPad)));
-  position = register_module("position", nn::Embedding(c.max_words, c.text_width));
-  // LibTorch 1.13's encoder layer is post-norm; at 2 layers that trains fine.
-  auto layer = nn::TransformerEncoderLayer(nn::TransformerEncoderLayerOptions(c.text_width, c.text_heads)
-                                               .dim_feedforward(c.text_ff)
-                                               .dropout(c.text_dropout)
-                                               .activation(torch::kGELU));
-  encoder = register_module("encoder", nn::TransformerEncoder(nn::TransformerEncoderOptions(layer, c.text_layers)));
-  norm = register_module("norm", nn::LayerNorm(nn::LayerNormOptions({c.text_width})));
-  out = register_module("out", nn::Linear(c.text_width, c.text_width));
-  torch::NoGradGuard ng;
-  nn::init::normal_(embedding->weight, 0.0, 0.02);
-  embedding->weight[TextVocab::kPad].zero_();
-  nn::init::normal_(position->weight, 0.0, 0.02);
-}
-
-torch::Tensor FlowTextEncoderImpl::forward(const torch::Tensor& ids, const torch::Tensor& lengths) {
-  const int64_t B = ids.size(0), L = ids.size(1);
-  auto dev = ids.device();
-  auto pos = torch::arange(L, torch::TensorOptions().dtype(torch::kInt64).device(dev));
-  auto h = embedding(ids) + position(pos).unsqueeze(0);  // [B, L, E]
-  auto valid = pos.unsqueeze(0) < lengths.to(dev).unsqueeze(1);  // [B, L]
-  h = encoder->forward(h.transpose(0, 1), torch::Tensor(), valid.logical_not()).transpose(0, 1);
-  // Mean over the real tokens: every word counts, unlike a last-token readout
-  // which a post-norm encoder this shallow tends to wash out.
-  auto m = valid.unsqueeze(-1).to(h.dtype());
-  auto pooled = (h * m).sum(1) / m.sum(1).clamp_min(1.0);
-  (void)B;
-  return out(norm(pooled));
-}
-
-EncodedCaptions encode_captions(const TextVocab& vocab, const std::vector<std::string>& captions, int max_words) {
-  const int64_t B = captions.size();
-  auto ids = torch::zeros({B, max_words}, torch::kInt64);
-  auto lengths = torch::zeros({B}, torch::kInt64);
-  auto ia = ids.accessor<int64_t, 2>();
-  for (int64_t b = 0; b < B; ++b) {
-    auto e = vocab.encode(captions[b], max_words);
-    for (int k = 0; k < max_words; ++k) ia[b][k] = e.ids[k];
-    lengths[b] = std::max(1, e.length);
-  }
-  return {ids, lengths};
+TextEncoderOptions FlowPriorConfig::text_encoder_options(int vocab_size) const {
+  TextEncoderOptions o;
+  o.vocab_size = vocab_size;
+  o.width = text_width;
+  o.layers = text_layers;
+  o.heads = text_heads;
+  o.ff = text_ff;
+  o.dropout = text_dropout;
+  o.max_words = max_words;
+  return o;
 }
 
 // ---------------------------------------------------------------- bundle
 
 FlowPriorNetImpl::FlowPriorNetImpl(int vocab_size, int num_joints, const FlowPriorConfig& c) {
-  text = register_module("text", FlowTextEncoder(vocab_size, c));
+  text = register_module("text", TextEncoder(c.text_encoder_options(vocab_size)));
   transformer = register_module("transformer", FlowTransformer(c.transformer_options(num_joints)));
   null_text = register_parameter("null_text", torch::randn({c.text_width}) * 0.02);
   joint_mean = register_buffer("joint_mean", torch::zeros({3}));
   joint_std = register_buffer("joint_std", torch::ones({3}));
   clean_prediction = c.prediction == "clean";
+  if (c.text_encoder.enabled()) {
+    // Registered last: a prior without the switch draws its initial weights
+    // exactly as before. The contrastive vector's scale is arbitrary (only its
+    // direction was trained), hence the LayerNorm first.
+    const int64_t w = c.text_width;
+    text_adapter = register_module(
+        "text_adapter", nn::Sequential(nn::LayerNorm(nn::LayerNormOptions({w})), nn::Linear(w, w),
+                                       nn::GELU(), nn::Linear(w, w)));
+    text_frozen = c.text_encoder.frozen;
+  }
 }
 
 torch::Tensor FlowPriorNetImpl::to_velocity(const torch::Tensor& out, const torch::Tensor& x,
@@ -114,7 +92,16 @@ torch::Tensor FlowPriorNetImpl::to_clean(const torch::Tensor& out, const torch::
 }
 
 torch::Tensor FlowPriorNetImpl::encode_text(const torch::Tensor& ids, const torch::Tensor& lengths) {
-  return text->forward(ids, lengths);
+  torch::Tensor pooled;
+  if (text_frozen) {
+    // Frozen: no dropout and no graph through the pretrained encoder.
+    torch::NoGradGuard ng;
+    text->eval();
+    pooled = text->forward(ids, lengths);
+  } else {
+    pooled = text->forward(ids, lengths);
+  }
+  return text_adapter ? text_adapter->forward(pooled) : pooled;
 }
 
 torch::Tensor FlowPriorNetImpl::null_condition(int64_t B) const { return null_text.unsqueeze(0).expand({B, -1}); }
@@ -128,12 +115,39 @@ class FlowPriorTrainer : public Trainable {
   FlowPriorTrainer(const FlowPriorConfig& c, const TrainContext& ctx) : cfg_(c), ctx_(ctx) {
     const MotionSet& set = ctx.data->set();
     vocab_ = set.vocab.empty() ? TextVocab::build(set) : TextVocab(set.vocab, ctx.data->source());
+    std::optional<TextClipRun> clip;
+    if (c.text_encoder.enabled()) {
+      // The pretrained encoder only knows its own word ids: the prior uses (and
+      // saves) that run's vocabulary. Trained on demand first, without disturbing
+      // this run's random stream.
+      text_run_ = resolve_text_clip_run(c.text_encoder, &std::cerr);
+      clip = read_text_clip_run(text_run_);
+      TextVocab theirs(clip->vocab, text_run_ + "/outputs/vocab.txt");
+      if (theirs.words() != vocab_.words())
+        std::cerr << fmt::format("text encoder: the vocabulary of {} ({} words) differs from the one data '{}' "
+                                 "gives ({} words); using the text encoder's\n",
+                                 text_run_, theirs.size(), ctx.data->source(), vocab_.size());
+      vocab_ = theirs;
+    }
     net_ = FlowPriorNet(vocab_.size(), ctx.data->num_joints(), c);
+    if (clip) {
+      load_text_clip_encoder(*clip, *net_->text, c.text_encoder_options(vocab_.size()), "model.text_encoder");
+      if (c.text_encoder.frozen)
+        for (auto& p : net_->text->parameters()) p.set_requires_grad(false);
+    }
     torch::NoGradGuard ng;
     net_->joint_mean.copy_(ctx.data->joint_mean());
     net_->joint_std.copy_(ctx.data->joint_std());
   }
   nn::Module& module() override { return *net_; }
+  // A frozen text encoder is left out of the optimiser (and so of the EMA): its
+  // weights in final.pt are the text_clip run's, bit for bit.
+  std::vector<torch::Tensor> trainable_parameters() override {
+    std::vector<torch::Tensor> out;
+    for (auto& p : net_->parameters())
+      if (p.requires_grad()) out.push_back(p);
+    return out;
+  }
 
   // Flow-matching loss, eq. (3), masked to valid frames; t, x0, crops, captions
   // and condition dropout all come from torch's generator (exact resume).
@@ -203,15 +217,16 @@ class FlowPriorTrainer : public Trainable {
     auto o = cfg_.transformer_options(ctx_.data->num_joints());
     const double d = o.width, h = o.resolved_mlp_hidden(), io = o.num_joints * 3.0;
     const double dt = cfg_.text_width, ff = cfg_.text_ff, w = cfg_.max_words;
-    double fwd = 0;
+    double fwd = 0, text = 0;
     for (int64_t i : idx) {
       const double L = std::min<int64_t>(ctx_.data->length(i), ctx_.window > 0 ? ctx_.window : INT64_MAX);
       const double per_token_block = 8 * d * d + 6 * d * h + 4 * L * d;
       fwd += L * (o.depth * per_token_block + 4 * io * d * o.temporal_kernel);  // blocks, embed + head
       fwd += 2 * d * (o.depth * 6 * d + 2 * d) + 2 * 2 * d * d;           // AdaLN per clip, t_mlp
-      fwd += w * cfg_.text_layers * (8 * dt * dt + 4 * dt * ff + 4 * w * dt) + 2 * dt * dt;  // text encoder
+      // Text encoder: forward only when frozen (no backward through it).
+      text += w * cfg_.text_layers * (8 * dt * dt + 4 * dt * ff + 4 * w * dt) + 2 * dt * dt;
     }
-    return 3 * fwd;
+    return 3 * fwd + (net_->text_frozen ? 1 : 3) * text;
   }
 
   void save_artifacts(const fs::path& outputs) override {
@@ -223,7 +238,10 @@ class FlowPriorTrainer : public Trainable {
     e << YAML::BeginMap << YAML::Key << "fps" << YAML::Value << set.fps << YAML::Key << "t_max" << YAML::Value
       << set.t_max << YAML::Key << "num_joints" << YAML::Value << set.num_joints() << YAML::Key << "data"
       << YAML::Value << ctx_.data->source() << YAML::Key << "skeleton" << YAML::Value << YAML::Literal
-      << skeleton_to_yaml(set.skeleton) << YAML::EndMap;
+      << skeleton_to_yaml(set.skeleton);
+    // A key ending in _run: shipping this prior ships the text encoder run too.
+    if (!text_run_.empty()) e << YAML::Key << "text_encoder_run" << YAML::Value << text_run_;
+    e << YAML::EndMap;
     write_file_atomic(outputs / "prior_meta.yaml", std::string(e.c_str()) + "\n");
   }
 
@@ -271,6 +289,7 @@ class FlowPriorTrainer : public Trainable {
   TrainContext ctx_;
   TextVocab vocab_{TextVocab::special_tokens()};
   FlowPriorNet net_{nullptr};
+  std::string text_run_;  // the text_clip run of model.text_encoder ('' when off)
 };
 
 }  // namespace

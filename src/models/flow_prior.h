@@ -7,6 +7,7 @@
 #include "core/config.h"
 #include "data/text_vocab.h"
 #include "models/flow_transformer.h"
+#include "models/text_encoder.h"
 
 namespace mc {
 
@@ -18,7 +19,8 @@ struct FlowPriorConfig : Config {
   int mlp_hidden = 0;  // 0 = 8/3 * width rounded up to 64 (SwiGLU with the params of a 4x MLP)
   double dropout = 0.0;
   double cond_drop = 0.1;
-  // Text encoder (trained jointly; no pretrained CLIP here).
+  // Text encoder (trained jointly, unless text_encoder names a contrastively
+  // pretrained `text_clip` run; no CLIP here).
   int text_width = 256;
   int text_layers = 2;
   int text_heads = 4;
@@ -38,6 +40,7 @@ struct FlowPriorConfig : Config {
   double clean_eps = 0.05;
   double smooth_weight = 0.0;
   int temporal_kernel = 1;
+  TextEncoderSourceConfig text_encoder;  // off by default (and then absent from the dump)
   void visit(FieldVisitor& v) override {
     v("depth", depth, "transformer blocks L", in_range(1, 64));
     v("width", width, "hidden size d (0 = 64 * depth)", at_least(0));
@@ -62,31 +65,18 @@ struct FlowPriorConfig : Config {
       "weight of the loss on frame-to-frame differences of the error (0 = off, ACMDM)", in_range(0.0, 100.0));
     v("temporal_kernel", temporal_kernel,
       "frames the input embedding and output head see (odd; 1 = ACMDM's per-frame PS22 Linear)", in_range(1, 31));
+    v("text_encoder", text_encoder,
+      "a contrastively pretrained text_clip run whose text encoder (same text_* sizes) replaces the jointly "
+      "trained one (off by default)");
   }
   std::string validate() const override;
   FlowTransformerOptions transformer_options(int num_joints) const;
+  TextEncoderOptions text_encoder_options(int vocab_size) const;
 };
 
-// Word embeddings + learned positions + a pre-norm transformer encoder, mean-pooled
-// over the real tokens (<sos> words <eos>) and projected: one vector per caption.
-struct FlowTextEncoderImpl : torch::nn::Module {
-  FlowTextEncoderImpl(int vocab_size, const FlowPriorConfig& c);
-  torch::Tensor forward(const torch::Tensor& ids, const torch::Tensor& lengths);  // [B, L], [B] -> [B, text_width]
-  torch::nn::Embedding embedding{nullptr}, position{nullptr};
-  torch::nn::TransformerEncoder encoder{nullptr};
-  torch::nn::LayerNorm norm{nullptr};
-  torch::nn::Linear out{nullptr};
-};
-TORCH_MODULE(FlowTextEncoder);
-
-struct EncodedCaptions {
-  torch::Tensor ids;      // [B, max_words] int64
-  torch::Tensor lengths;  // [B] int64
-};
-EncodedCaptions encode_captions(const TextVocab& vocab, const std::vector<std::string>& captions, int max_words);
-
-// Everything final.pt holds: text encoder, null text embedding, velocity network
-// and the dataset's per-axis normalisation (buffers, so the weights carry them).
+// Everything final.pt holds: text encoder (and its adapter when pretrained), null
+// text embedding, velocity network and the dataset's per-axis normalisation
+// (buffers, so the weights carry them).
 struct FlowPriorNetImpl : torch::nn::Module {
   FlowPriorNetImpl(int vocab_size, int num_joints, const FlowPriorConfig& c);
   // Pooled text vectors [B, text_width].
@@ -99,7 +89,14 @@ struct FlowPriorNetImpl : torch::nn::Module {
   torch::Tensor to_velocity(const torch::Tensor& out, const torch::Tensor& x, const torch::Tensor& t) const;
   torch::Tensor to_clean(const torch::Tensor& out, const torch::Tensor& x, const torch::Tensor& t) const;
   bool clean_prediction = false;
-  FlowTextEncoder text{nullptr};
+  // model.text_encoder.frozen with a pretrained encoder: encode_text runs `text`
+  // without gradient and in eval mode whatever mode the bundle is in.
+  bool text_frozen = false;
+  TextEncoder text{nullptr};
+  // Only with model.text_encoder: LayerNorm -> Linear -> GELU -> Linear from the
+  // pretrained pooled vector to the condition (absent otherwise, so older
+  // checkpoints keep their parameter list).
+  torch::nn::Sequential text_adapter{nullptr};
   FlowTransformer transformer{nullptr};
   torch::Tensor null_text;             // [text_width] parameter
   torch::Tensor joint_mean, joint_std;  // (3,) buffers
