@@ -37,10 +37,11 @@ struct EvalSampleRecord {
   std::map<std::string, std::string> attrs;            // input paths and their SHA-1, evaluator run, split
 };
 
-// write_metric_results, and metrics.h5 also holds /embeddings, /samples and the
-// record's attributes.
+// write_metric_results with the given summaries (bootstrap_summary: the values are
+// bootstrap resamples; metrics.h5's root attribute `interval` says "bootstrap"), and
+// metrics.h5 also holds /embeddings, /samples and the record's attributes.
 void write_eval_results(const std::string& dir, const std::map<std::string, std::vector<double>>& values,
-                        const EvalSampleRecord& record);
+                        const std::map<std::string, Replicated>& summaries, const EvalSampleRecord& record);
 // The embeddings metrics.h5 stores (/embeddings); UserError naming the file when absent.
 EvalEmbeddings read_eval_embeddings(const std::string& dir);
 

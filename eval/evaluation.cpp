@@ -7,6 +7,7 @@
 #include <H5Cpp.h>
 
 #include <algorithm>
+#include <cmath>
 #include <numeric>
 #include <random>
 
@@ -105,6 +106,29 @@ std::map<std::string, double> evaluator_free_metrics(const MotionSet& motions, c
   return out;
 }
 
+std::map<std::string, double> free_metrics_of_selection(const std::vector<JointsView>& clips,
+                                                        const std::vector<std::vector<double>>* errors,
+                                                        const std::vector<size_t>& idx, const Skeleton& skeleton,
+                                                        double fps, const EvalProtocol& p) {
+  if (idx.empty()) fail("free_metrics_of_selection: no samples selected");
+  if (errors && errors->size() != clips.size())
+    fail("free_metrics_of_selection: {} error lists for {} clips", errors->size(), clips.size());
+  FootSkatingOptions fo;
+  fo.fps = fps;
+  fo.padded_196 = p.foot_skating_padded_196;
+  std::vector<JointsView> sel;
+  std::vector<std::vector<double>> sel_err;
+  for (size_t i : idx) {
+    if (i >= clips.size()) fail("free_metrics_of_selection: index {} out of {} clips", i, clips.size());
+    sel.push_back(clips[i]);
+    if (errors && !(*errors)[i].empty()) sel_err.push_back((*errors)[i]);
+  }
+  std::map<std::string, double> out;
+  out["foot_skating"] = foot_skating_ratio(sel, skeleton, fo);
+  if (!sel_err.empty()) add_control_metrics(sel_err, p, out);
+  return out;
+}
+
 std::map<std::string, double> evaluator_free_metrics(const MotionSet& motions, const std::string& motions_source,
                                                      const EvalProtocol& p, const std::vector<ConstraintSpec>& specs) {
   std::map<std::string, double> out = evaluator_free_metrics(motions, motions_source, p, "", nullptr);
@@ -181,6 +205,7 @@ std::map<std::string, std::vector<double>> read_metric_results(const std::string
 }
 
 static void write_metric_results_impl(const std::string& dir, const std::map<std::string, std::vector<double>>& values,
+                                      const std::map<std::string, Replicated>& summaries,
                                       const EvalSampleRecord* record);
 
 namespace {
@@ -238,19 +263,24 @@ EvalEmbeddings read_eval_embeddings(const std::string& dir) {
 }
 
 void write_metric_results(const std::string& dir, const std::map<std::string, std::vector<double>>& values) {
-  write_metric_results_impl(dir, values, nullptr);
+  std::map<std::string, Replicated> summaries;
+  for (auto& [k, v] : values) summaries[k] = summarize(v);
+  write_metric_results_impl(dir, values, summaries, nullptr);
 }
 
 void write_eval_results(const std::string& dir, const std::map<std::string, std::vector<double>>& values,
-                        const EvalSampleRecord& record) {
-  write_metric_results_impl(dir, values, &record);
+                        const std::map<std::string, Replicated>& summaries, const EvalSampleRecord& record) {
+  write_metric_results_impl(dir, values, summaries, &record);
 }
 
 static void write_metric_results_impl(const std::string& dir, const std::map<std::string, std::vector<double>>& values,
+                                      const std::map<std::string, Replicated>& summaries,
                                       const EvalSampleRecord* record) {
+  for (auto& [k, v] : values)
+    if (!summaries.count(k)) fail("{}: metric '{}' has values but no summary", dir, k);
   std::string csv = "metric,mean,std,ci95,n\n";
   for (auto& [k, v] : values) {
-    Replicated r = summarize(v);
+    const Replicated& r = summaries.at(k);
     csv += fmt::format("{},{:.8g},{:.8g},{:.8g},{}\n", k, r.mean, r.std, r.ci95, r.n);
   }
   write_file_atomic(fs::path(dir) / "metrics.csv", csv);
@@ -265,7 +295,7 @@ static void write_metric_results_impl(const std::string& dir, const std::map<std
       H5::DataSpace space(1, &n);
       auto ds = g.createDataSet(h5_metric_name(k), H5::PredType::NATIVE_DOUBLE, space);
       ds.write(v.data(), H5::PredType::NATIVE_DOUBLE);
-      Replicated r = summarize(v);
+      const Replicated& r = summaries.at(k);
       H5::DataSpace scalar(H5S_SCALAR);
       for (auto [name, val] : {std::pair<const char*, double>{"mean", r.mean}, {"std", r.std}, {"ci95", r.ci95}})
         ds.createAttribute(name, H5::PredType::NATIVE_DOUBLE, scalar).write(H5::PredType::NATIVE_DOUBLE, &val);
@@ -273,6 +303,9 @@ static void write_metric_results_impl(const std::string& dir, const std::map<std
     // Version 1 files (no attributes) held /replicates only; 2 adds these attributes and,
     // from `motionctl eval`, /embeddings and /samples.
     write_string_attr(f, "format", "motionctl.metrics");
+    // How mean/std/ci95 relate to /replicates: fresh replications, or bootstrap
+    // resamples of fixed samples around the full set's value (bootstrap_summary).
+    write_string_attr(f, "interval", record ? "bootstrap" : "replications");
     const int64_t version = 2;
     f.createAttribute("format_version", H5::PredType::STD_I64LE, H5::DataSpace(H5S_SCALAR))
         .write(H5::PredType::NATIVE_INT64, &version);
@@ -282,12 +315,49 @@ static void write_metric_results_impl(const std::string& dir, const std::map<std
 }
 
 std::string format_metric_table(const std::map<std::string, std::vector<double>>& values) {
+  std::map<std::string, Replicated> summaries;
+  for (auto& [k, v] : values) summaries[k] = summarize(v);
+  return format_metric_table(summaries);
+}
+
+std::string format_metric_table(const std::map<std::string, Replicated>& summaries) {
   std::string s = fmt::format("{:<22} {:>12} {:>12} {:>4}\n", "metric", "mean", "±95% CI", "n");
-  for (auto& [k, v] : values) {
-    Replicated r = summarize(v);
-    s += fmt::format("{:<22} {:>12.5f} {:>12.5f} {:>4}\n", k, r.mean, r.ci95, r.n);
-  }
+  for (auto& [k, r] : summaries) s += fmt::format("{:<22} {:>12.5f} {:>12.5f} {:>4}\n", k, r.mean, r.ci95, r.n);
   return s;
+}
+
+Replicated bootstrap_summary(double full_set_value, const std::vector<double>& resamples) {
+  if (!std::isfinite(full_set_value)) fail("bootstrap_summary: full-set value {} is not finite", full_set_value);
+  Replicated r;
+  r.mean = full_set_value;
+  r.n = static_cast<int>(resamples.size());
+  if (r.n < 2) return r;
+  double m = 0;
+  for (double v : resamples) {
+    if (!std::isfinite(v)) fail("bootstrap_summary: resample value {} is not finite", v);
+    m += v;
+  }
+  m /= r.n;
+  double ss = 0;
+  for (double v : resamples) ss += (v - m) * (v - m);
+  r.std = std::sqrt(ss / (r.n - 1));  // the bootstrap standard error
+  r.ci95 = 1.96 * r.std;               // not / sqrt(n): each resample is a whole-set estimate
+  return r;
+}
+
+EvalEmbeddings select_rows(const EvalEmbeddings& e, const std::vector<size_t>& idx) {
+  EvalEmbeddings out;
+  out.gt_motion = e.gt_motion;
+  out.motion.resize(static_cast<Eigen::Index>(idx.size()), e.motion.cols());
+  out.text.resize(static_cast<Eigen::Index>(idx.size()), e.text.cols());
+  for (size_t r = 0; r < idx.size(); ++r) {
+    if (idx[r] >= static_cast<size_t>(e.motion.rows()))
+      fail("select_rows: index {} out of {} motions", idx[r], e.motion.rows());
+    out.motion.row(static_cast<Eigen::Index>(r)) = e.motion.row(static_cast<Eigen::Index>(idx[r]));
+    out.text.row(static_cast<Eigen::Index>(r)) = e.text.row(static_cast<Eigen::Index>(idx[r]));
+    out.captions.push_back(e.captions.at(idx[r]));
+  }
+  return out;
 }
 
 }  // namespace mc

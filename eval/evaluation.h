@@ -57,10 +57,30 @@ std::map<std::string, double> evaluator_free_metrics(const MotionSet& motions, c
                                                      const EvalProtocol& p, const std::string& constraints,
                                                      const MotionSet* source);
 
+// Evaluator-free metrics of a selection of samples whose indices may repeat (a
+// bootstrap resample): foot skating over clips[idx]; with `errors` (per sample entry
+// errors, control_entry_errors), the control metrics of the selected samples whose
+// list is non-empty. Nothing is recompiled, so a resample costs little.
+std::map<std::string, double> free_metrics_of_selection(const std::vector<JointsView>& clips,
+                                                        const std::vector<std::vector<double>>* errors,
+                                                        const std::vector<size_t>& idx, const Skeleton& skeleton,
+                                                        double fps, const EvalProtocol& p);
+// The rows idx (may repeat) of the generated motions' embeddings and captions; the
+// ground-truth embeddings are kept whole (the reference is not resampled).
+EvalEmbeddings select_rows(const EvalEmbeddings& e, const std::vector<size_t>& idx);
+
+// A metric over fixed samples (`motionctl eval` of one motion file, where nothing is
+// regenerated): the reported value is the full set's, and its spread comes from B
+// bootstrap resamples of the samples (std: their sample SD; ci95: 1.96 SD, the normal
+// bootstrap interval; n = B). With B < 2 the spread is 0.
+Replicated bootstrap_summary(double full_set_value, const std::vector<double>& resamples);
+
 // Writes {metric: replicate values} and their summaries as CSV and HDF5 (atomic).
+// Replications (fresh generations per replicate): mean +- 1.96 std / sqrt(n).
 void write_metric_results(const std::string& dir, const std::map<std::string, std::vector<double>>& values);
 // Reads what write_metric_results wrote (metrics.h5); UserError naming the file.
 std::map<std::string, std::vector<double>> read_metric_results(const std::string& dir);
 std::string format_metric_table(const std::map<std::string, std::vector<double>>& values);
+std::string format_metric_table(const std::map<std::string, Replicated>& summaries);
 
 }  // namespace mc

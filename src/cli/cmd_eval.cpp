@@ -5,7 +5,11 @@
 #include <c10/util/hash.h>
 
 #include <filesystem>
+#include <fstream>
 #include <optional>
+#include <sstream>
+#include <random>
+#include <cmath>
 #include <iostream>
 
 #include "cli/commands.h"
@@ -63,7 +67,26 @@ EvalJobResult run_eval_job(EvalJobConfig& job, const std::vector<std::string>& o
                             fmt::format("{}-{}-{}", stem, config_hash(job), c10::sha1(identity).str().substr(0, 8)));
   res.run_dir = run.path().string();
   if (run.finished()) {  // a finished evaluation of the same bytes is a no-op: report what it found
-    for (auto& [k, v] : run.summary()) res.values[k] = {v};
+    for (auto& [k, v] : run.summary()) {
+      Replicated r;
+      r.mean = v;
+      res.summaries[k] = r;
+    }
+    // The spread the run wrote (metrics.csv: metric,mean,std,ci95,n); means from DONE.
+    std::ifstream csv(run.path() / "metrics.csv");
+    std::string line;
+    std::getline(csv, line);
+    while (std::getline(csv, line)) {
+      std::vector<std::string> f;
+      std::stringstream ss(line);
+      for (std::string x; std::getline(ss, x, ',');) f.push_back(x);
+      if (f.size() != 5 || !res.summaries.count(f[0])) continue;
+      char* end = nullptr;
+      const double sd = std::strtod(f[2].c_str(), &end), ci = std::strtod(f[3].c_str(), nullptr);
+      const long nn = std::strtol(f[4].c_str(), nullptr, 10);
+      if (end == f[2].c_str() || !std::isfinite(sd) || !std::isfinite(ci) || nn < 0) continue;
+      res.summaries[f[0]].std = sd, res.summaries[f[0]].ci95 = ci, res.summaries[f[0]].n = static_cast<int>(nn);
+    }
     run.log().info(fmt::format("{} is finished; showing its means (run.force=true redoes it)", res.run_dir));
     return res;
   }
@@ -90,10 +113,39 @@ EvalJobResult run_eval_job(EvalJobConfig& job, const std::vector<std::string>& o
   auto free = stored.empty() ? evaluator_free_metrics(motions, motions_path, job.protocol, constraints_path,
                                                       source ? &*source : nullptr)
                              : evaluator_free_metrics(motions, motions_path, job.protocol, stored);
+  std::vector<std::vector<double>> errors;  // per sample, the error of every constrained entry
+  if (!stored.empty()) errors = control_entry_errors(motions, motions_path, stored);
+  else if (!constraints_path.empty())
+    errors = control_entry_errors(motions, motions_path, constraints_path, source ? &*source : nullptr);
+
+  // The motions are fixed (nothing is regenerated here), so replicate r is a bootstrap
+  // resample of the samples (seed + r): repeating the same set would print ± 0 for
+  // FID, matching and one-pool R-precision. The reported value stays the full set's.
+  const size_t n = motions.size();
+  std::vector<JointsView> clips;
+  for (size_t i = 0; i < n; ++i) clips.push_back(joints_view(motions, i));
+  std::map<std::string, double> point = t2m_metrics(emb, job.protocol, static_cast<uint64_t>(job.run.seed));
+  for (auto& [k, v] : free) point[k] = v;
   for (int r = 0; r < job.protocol.repeats; ++r) {
-    for (auto& [k, v] : t2m_metrics(emb, job.protocol, static_cast<uint64_t>(job.run.seed) + r)) res.values[k].push_back(v);
-    for (auto& [k, v] : free) res.values[k].push_back(v);  // fixed motions: these do not vary
+    std::mt19937_64 rng(static_cast<uint64_t>(job.run.seed) + static_cast<uint64_t>(r));
+    std::uniform_int_distribution<size_t> pick(0, n - 1);
+    std::vector<size_t> idx(n);
+    for (auto& i : idx) i = pick(rng);
+    auto m = t2m_metrics(select_rows(emb, idx), job.protocol, static_cast<uint64_t>(job.run.seed) + r);
+    for (auto& [k, v] : free_metrics_of_selection(clips, errors.empty() ? nullptr : &errors, idx, motions.skeleton,
+                                                  motions.fps, job.protocol))
+      m[k] = v;
+    // A metric a resample cannot form (no caption drawn twice: no multimodality; no
+    // constrained sample drawn) leaves that resample out of its spread.
+    for (auto& [k, v] : m)
+      if (point.count(k) && std::isfinite(v)) res.values[k].push_back(v);
   }
+  std::map<std::string, Replicated> summaries;
+  for (auto& [k, v] : point) {
+    res.values[k];  // a metric no resample could form still reports its full-set value
+    summaries[k] = bootstrap_summary(v, res.values[k]);
+  }
+  res.summaries = summaries;
 
   // Per sample, for outside tools: matching distance, foot skating, control errors.
   EvalSampleRecord rec;
@@ -102,18 +154,13 @@ EvalJobResult run_eval_job(EvalJobConfig& job, const std::vector<std::string>& o
   rec.lengths = motions.lengths;
   rec.reference_ids = reference.ids;
   rec.attrs = attrs;
-  const size_t n = motions.size();
   auto& matching = rec.metrics["matching"];
   for (size_t i = 0; i < n; ++i) matching.push_back((emb.text.row(i) - emb.motion.row(i)).norm());
   FootSkatingOptions fo;
   fo.fps = motions.fps;
   fo.padded_196 = job.protocol.foot_skating_padded_196;
   auto& skating = rec.metrics["foot_skating"];
-  for (size_t i = 0; i < n; ++i) skating.push_back(foot_skating_ratio({joints_view(motions, i)}, motions.skeleton, fo));
-  std::vector<std::vector<double>> errors;
-  if (!stored.empty()) errors = control_entry_errors(motions, motions_path, stored);
-  else if (!constraints_path.empty())
-    errors = control_entry_errors(motions, motions_path, constraints_path, source ? &*source : nullptr);
+  for (size_t i = 0; i < n; ++i) skating.push_back(foot_skating_ratio({clips[i]}, motions.skeleton, fo));
   if (!errors.empty()) {
     auto& avg = rec.metrics["avg_err"];
     auto& mx = rec.metrics["max_err"];
@@ -124,9 +171,9 @@ EvalJobResult run_eval_job(EvalJobConfig& job, const std::vector<std::string>& o
       mx.push_back(e.empty() ? std::nan("") : m);
     }
   }
-  write_eval_results(run.path().string(), res.values, rec);
+  write_eval_results(run.path().string(), res.values, summaries, rec);
   std::map<std::string, double> summary;
-  for (auto& [k, v] : res.values) summary[k] = summarize(v).mean;
+  for (auto& [k, r] : summaries) summary[k] = r.mean;
   run.mark_finished(summary);
   return res;
 }
@@ -144,7 +191,7 @@ void add_eval_commands(CLI::App& app) {
     cmd->callback([a] {
       auto job = load_job<EvalJobConfig>(a->file, a->overrides);
       EvalJobResult r = run_eval_job(job, a->overrides, fs::path(a->file).stem().string());
-      std::cout << format_metric_table(r.values) << "results: " << r.run_dir << "/metrics.csv, metrics.h5\n";
+      std::cout << format_metric_table(r.summaries) << "results: " << r.run_dir << "/metrics.csv, metrics.h5\n";
     });
   }
   {

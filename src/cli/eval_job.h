@@ -43,7 +43,8 @@ struct EvalJobConfig : Config {
 
 struct EvalJobResult {
   std::string run_dir;
-  std::map<std::string, std::vector<double>> values;  // metric -> one value per replicate
+  std::map<std::string, std::vector<double>> values;  // metric -> one value per bootstrap resample
+  std::map<std::string, Replicated> summaries;        // full-set value, bootstrap spread (bootstrap_summary)
 };
 
 EvalJobResult run_eval_job(EvalJobConfig& job, const std::vector<std::string>& overrides, const std::string& stem);

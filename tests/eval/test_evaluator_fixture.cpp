@@ -3,8 +3,12 @@
 // time warping, R-precision of ground truth is far above chance, shuffled texts
 // match worse than true pairs. Also eval/score command behaviour and bad input.
 #include <catch2/catch.hpp>
+#include <numeric>
 #include <random>
+#include <sstream>
 
+#include "core/error.h"
+#include "eval/eval_outputs.h"
 #include "eval/evaluation.h"
 #include "eval/t2m_evaluator.h"
 #include "test_util.h"
@@ -134,8 +138,32 @@ TEST_CASE("evaluator on the fixture: metrics respond as they should; motionctl e
     fs::path run = runs->path();
     std::string csv = slurp(run / "metrics.csv");
     CHECK(csv.find("fid,") != std::string::npos);
-    CHECK(csv.find(",3\n") != std::string::npos);  // n = 3 replicates
+    CHECK(csv.find(",3\n") != std::string::npos);  // n = 3 bootstrap resamples
     CHECK(fs::exists(run / "metrics.h5"));
+    // The ground-truth row against itself: the reported FID is the full set's (0), its
+    // spread comes from resamples (each > 0), so the interval is not +- 0; nor is
+    // R-precision's, which on one pool of 32 used to repeat the same value.
+    std::map<std::string, std::vector<double>> rows;
+    {
+      std::stringstream ss(csv);
+      std::string line;
+      std::getline(ss, line);
+      while (std::getline(ss, line)) {
+        std::vector<std::string> f;
+        std::stringstream ls(line);
+        for (std::string x; std::getline(ls, x, ',');) f.push_back(x);
+        REQUIRE(f.size() == 5);
+        rows[f[0]] = {std::stod(f[1]), std::stod(f[2]), std::stod(f[3]), std::stod(f[4])};
+      }
+    }
+    CHECK(rows.at("fid")[0] == Approx(0.0).margin(1e-4));
+    CHECK(rows.at("fid")[2] > 0.0);
+    CHECK(rows.at("r_precision_top3")[2] > 0.0);
+    CHECK(rows.at("matching")[2] > 0.0);
+    // The per-resample values in metrics.h5 are what the spread summarises.
+    auto reps = read_metric_results(run.string());
+    REQUIRE(reps.at("fid").size() == 3);
+    for (double v : reps.at("fid")) CHECK(v > rows.at("fid")[0]);
 
     // Wrong fps, NaN motions, missing evaluator, wrong shapes: exit 2, clear message.
     MotionSet bad = tr.test;
@@ -185,6 +213,31 @@ TEST_CASE("motionctl score: foot skating and control errors from a constraint sp
   CHECK(s.output.find("traj_err@0.5,0") != std::string::npos);
   auto bad = run_motionctl(fmt::format("score {} --constraints {}", data, (t.path / "missing.yaml").string()));
   CHECK(bad.exit_code == 2);
+
+  // The bootstrap of `motionctl eval` scores selections without recompiling: the
+  // identity selection gives evaluator_free_metrics; a selection equals the metrics of
+  // the subset it names, repeats included.
+  MotionSet src = read_motion_file(data);
+  const std::string spec = (t.path / "self.yaml").string();
+  EvalProtocol p;
+  auto errors = control_entry_errors(m, "shifted", spec, &src);
+  std::vector<JointsView> clips;
+  for (size_t i = 0; i < m.size(); ++i) clips.push_back(joints_view(m, i));
+  std::vector<size_t> all(m.size());
+  std::iota(all.begin(), all.end(), 0);
+  auto whole = evaluator_free_metrics(m, "shifted", p, spec, &src);
+  auto sel = free_metrics_of_selection(clips, &errors, all, m.skeleton, m.fps, p);
+  REQUIRE(sel.size() == whole.size());
+  for (auto& [k, v] : whole) CHECK(sel.at(k) == Approx(v).margin(1e-12));
+  const std::vector<size_t> pick = {3, 3, 7, 0, 12};
+  auto picked = free_metrics_of_selection(clips, &errors, pick, m.skeleton, m.fps, p);
+  std::vector<JointsView> sub_clips = {clips[3], clips[3], clips[7], clips[0], clips[12]};
+  FootSkatingOptions fo;
+  fo.fps = m.fps;
+  CHECK(picked.at("foot_skating") == Approx(foot_skating_ratio(sub_clips, m.skeleton, fo)));
+  CHECK(picked.at("avg_err") == Approx(0.3).margin(1e-5));
+  CHECK_THROWS_AS(free_metrics_of_selection(clips, &errors, {m.size()}, m.skeleton, m.fps, p), mc::UserError);
+  CHECK_THROWS_AS(free_metrics_of_selection(clips, &errors, {}, m.skeleton, m.fps, p), mc::UserError);
 }
 
 TEST_CASE("t2m_metrics: multimodality over caption groups cut to equal size; pools", "[eval]") {

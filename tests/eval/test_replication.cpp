@@ -1,6 +1,7 @@
 // Replication summaries: hand-computed mean / population std / 95% CI, and the
 // seed sweep that summarises every named metric.
 #include "eval_test_util.h"
+#include "eval/evaluation.h"
 
 using namespace mc;
 
@@ -44,4 +45,39 @@ TEST_CASE("replicate runs seeds seed0..seed0+N-1 and summarises each metric", "[
                                  return MetricValues{{"a", s == 1 ? std::nan("") : 1.0}};
                                }),
                      "metric 'a': summarize");
+}
+
+TEST_CASE("bootstrap_summary: the full set's value, the resamples' sample SD, 1.96 SD", "[eval]") {
+  const Replicated r = bootstrap_summary(10.0, {1.0, 2.0, 3.0, 4.0});
+  REQUIRE(r.n == 4);
+  REQUIRE(r.mean == 10.0);  // never the resamples' mean (2.5)
+  // squared deviations sum to 5; / (n - 1) = 5/3
+  REQUIRE(r.std == Approx(std::sqrt(5.0 / 3.0)));
+  REQUIRE(r.ci95 == Approx(1.96 * std::sqrt(5.0 / 3.0)));  // not / sqrt(n)
+  const Replicated one = bootstrap_summary(0.5, {0.7});
+  REQUIRE(one.mean == 0.5);
+  REQUIRE(one.ci95 == 0.0);
+  REQUIRE_USER_ERROR(bootstrap_summary(std::nan(""), {1.0, 2.0}), "not finite");
+  REQUIRE_USER_ERROR(bootstrap_summary(1.0, {1.0, std::nan("")}), "not finite");
+}
+
+TEST_CASE("select_rows picks motion/text rows and captions, repeats included; the reference stays whole", "[eval]") {
+  EvalEmbeddings e;
+  e.motion = Embeddings::Zero(4, 2);
+  e.text = Embeddings::Zero(4, 2);
+  e.gt_motion = Embeddings::Ones(5, 2);
+  for (int i = 0; i < 4; ++i) {
+    e.motion(i, 0) = i;
+    e.text(i, 1) = 10 * i;
+    e.captions.push_back(std::to_string(i));
+  }
+  EvalEmbeddings s = select_rows(e, {2, 2, 0});
+  REQUIRE(s.motion.rows() == 3);
+  CHECK(s.motion(0, 0) == 2);
+  CHECK(s.motion(1, 0) == 2);
+  CHECK(s.motion(2, 0) == 0);
+  CHECK(s.text(0, 1) == 20);
+  CHECK(s.captions == std::vector<std::string>{"2", "2", "0"});
+  CHECK(s.gt_motion.rows() == 5);
+  REQUIRE_USER_ERROR(select_rows(e, {4}), "out of 4");
 }
