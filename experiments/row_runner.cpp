@@ -11,11 +11,13 @@
 
 #include "control/camera.h"
 #include "control/linear_observation.h"
+#include "control/sample_constraints.h"
 #include <H5Cpp.h>
 
 #include "core/atomic_file.h"
 #include "core/error.h"
 #include "data/fixture/fixture_build.h"
+#include "data/motion_file_extra.h"
 #include "data/motion_set.h"
 #include "data/skeleton.h"
 #include "eval/observation_errors.h"
@@ -432,7 +434,18 @@ RowResult run_row(const ProfileFile& pf, const TableSpec& table, const RowConfig
       write_examples((run.path() / "examples.h5").string(), m, tasks, kExamplesPerRow);
     }
     m.provenance = Provenance{"motionctl reproduce", MOTIONCTL_VERSION, static_cast<int64_t>(seed), yaml, utc_timestamp()};
-    write_motion_file((run.path() / fmt::format("samples_r{}.h5", r)).string(), m);
+    // Each sample's spec with its targets written out (/control), as `generate` stores
+    // it: `motionctl score samples_r<r>.h5` then scores a row's motions with no spec.
+    std::vector<ConstraintSpec> stored;
+    std::vector<int> stored_frames;
+    for (size_t i = 0; i < tasks.size(); ++i) {
+      stored.push_back(with_explicit_targets(tasks[i].spec, m.lengths[i], m.skeleton,
+                                             tasks[i].source.empty() ? nullptr : tasks[i].source.data()));
+      stored_frames.push_back(m.lengths[i]);
+    }
+    const std::string samples_path = (run.path() / fmt::format("samples_r{}.h5", r)).string();
+    write_motion_file(samples_path, m,
+                      [&](int64_t f) { write_sample_constraints(f, stored, stored_frames, samples_path); });
     EvalEmbeddings emb = ev.embed(m);
     auto per_sample = row_sample_metrics(m, emb, tasks, pf.protocol, seed);
     auto metrics = replicate_metrics(ev, emb, per_sample, tasks, pf.protocol, seed);

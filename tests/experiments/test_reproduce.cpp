@@ -9,6 +9,7 @@
 #include <algorithm>
 #include <fstream>
 #include <map>
+#include <regex>
 #include <sstream>
 
 #include "experiments/experiment.h"
@@ -146,6 +147,26 @@ TEST_CASE("motionctl reproduce: reduced smoke replay of the ProjFlow tables", "[
     ex.openAttribute("captions").read(ex.openAttribute("captions").getStrType(), caps);
     CHECK(static_cast<unsigned long long>(std::count(caps.begin(), caps.end(), '\n')) == mc::kExamplesInResults - 1);
   }
+
+  // Every row's sample files carry their per-sample specs (/control), so `score` alone
+  // re-scores them; ProjFlow's hard constraints hold on the stored targets too.
+  int scored = 0, exact = 0;
+  for (auto& e : fs::recursive_directory_iterator(dir.path / "runs"))
+    if (e.path().filename() == "samples_r0.h5") {
+      auto sc = run_motionctl(fmt::format("score {} --csv", e.path().string()));
+      INFO(e.path() << "\n" << sc.output);
+      REQUIRE(sc.exit_code == 0);
+      ++scored;
+      const std::string row = e.path().parent_path().filename().string();
+      if (row.find("projflow") == std::string::npos || row.find("ddnm") != std::string::npos) continue;
+      std::smatch m;
+      if (!std::regex_search(sc.output, m, std::regex("avg_err,([^\n]+)"))) continue;
+      CHECK(sc.output.find("constraint specs stored in") != std::string::npos);
+      CHECK(std::stod(m[1]) <= 1e-4);
+      ++exact;
+    }
+  CHECK(scored > 5);
+  CHECK(exact > 0);
 
   // A second run reuses every finished row.
   auto again = run_motionctl(fmt::format("reproduce --profile {} --tables projflow/table3 --no-figures", profile));
