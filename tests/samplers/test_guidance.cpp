@@ -137,7 +137,7 @@ TEST_CASE("guidance: the residual clip keeps an oversized step from overshooting
     for (size_t i = 0; i < tasks.size(); ++i) e += avg_err(tasks[i], g, i);
     return e / tasks.size();
   };
-  const double free = err_of("  guidance: {iterations: 0}\n");
+  const double free = err_of("  guidance: {iterations: 0, final_steps: 0}\n");
   // A step 1e4 times what a single keyframe's mean loss needs: clipped, it lands near the target.
   const double clipped = err_of("  guidance: {scale: 1.0e4, final_steps: 2, final_iterations: 10}\n");
   INFO("free " << free << " clipped " << clipped);
