@@ -329,8 +329,14 @@ class VqTokenizerTrainer : public Trainable {
     }
     auto out = model_->forward(x, mask);
     auto m = mask.unsqueeze(-1).to(x.dtype());
+    if (model_->invariant() && cfg_.representation.root_weight != 1.0) {
+      // Per-channel weights (root channels root_weight, the rest 1), normalised to mean 1.
+      auto w = torch::ones({x.size(2)}, x.options());
+      w.narrow(0, 0, 4).fill_(cfg_.representation.root_weight);
+      m = m * (w / w.mean());
+    }
     auto rec = masked_mean(elementwise(out.recon, x), m, x.size(2));
-    auto mv = m.slice(1, 1) * m.slice(1, 0, -1);
+    auto mv = m.slice(1, 1) * mask.slice(1, 0, -1).unsqueeze(-1).to(x.dtype());
     auto vel = masked_mean(elementwise(out.recon.diff(1, 1), x.diff(1, 1)), mv, x.size(2));
     LossOutput lo;
     lo.loss = rec + cfg_.velocity_weight * vel + out.commit_loss;
@@ -341,13 +347,15 @@ class VqTokenizerTrainer : public Trainable {
                 {"resets", out.resets.to(torch::kFloat32)}};
     if (model_->invariant() && cfg_.representation.world_weight > 0) {
       // Joints recovered by integration over the window (from the frame before it),
-      // prediction against target, per axis in joint-std units: penalises drift.
+      // prediction against target: the mean per-joint Euclidean error in metres
+      // (MPJPE; its gradient does not fade as the drift gets small, as a squared one would).
       const int64_t J = model_->num_joints();
       auto fm = model_->feature_mean, fs = model_->feature_std;
-      auto wy = recover_world_from_invariant(out.recon * fs + fm, J) / model_->joint_std;
-      auto wx = recover_world_from_invariant(x * fs + fm, J) / model_->joint_std;
-      auto mw = mask.view({mask.size(0), mask.size(1), 1, 1}).to(x.dtype());
-      auto world = (elementwise(wy, wx) * mw).sum() / (mw.sum() * J * 3 + 1e-8);
+      auto wy = recover_world_from_invariant(out.recon * fs + fm, J);
+      auto wx = recover_world_from_invariant(x * fs + fm, J);
+      auto mw = mask.unsqueeze(-1).to(x.dtype());  // [B, T, 1]
+      auto err = ((wy - wx).pow(2).sum(-1) + 1e-12).sqrt();  // [B, T, J]
+      auto world = (err * mw).sum() / (mw.sum() * J + 1e-8);
       lo.loss = lo.loss + cfg_.representation.world_weight * world;
       lo.parts.emplace_back("world", world.detach());
     }
@@ -501,7 +509,10 @@ class VqTokenizerTrainer : public Trainable {
     if (cfg_.recon_loss == "mse") return (y - x).pow(2);
     return F::smooth_l1_loss(y, x, F::SmoothL1LossFuncOptions().reduction(torch::kNone));
   }
+  // m [B, T, 1] (a frame mask: the mean over frames and `dim` channels) or [B, T, C]
+  // (per-channel weights times the mask: the weighted mean).
   static torch::Tensor masked_mean(const torch::Tensor& v, const torch::Tensor& m, int64_t dim) {
+    if (m.size(-1) > 1) return (v * m).sum() / (m.sum() + 1e-8);
     return (v * m).sum() / (m.sum() * dim + 1e-8);
   }
   // Per-joint mean world position over the valid training frames, repeated over T.

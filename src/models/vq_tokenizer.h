@@ -146,6 +146,7 @@ struct VqRepresentationConfig : Config {
   std::string layout = "inv67";
   double facing_smooth_sigma = 20.0;
   double world_weight = 0.0;
+  double root_weight = 1.0;
   void visit(FieldVisitor& v) override {
     v("type", type,
       "absolute_joints: per-axis normalised world joints (ACMDM); invariant: HumanML3D-style root heading change, "
@@ -160,13 +161,18 @@ struct VqRepresentationConfig : Config {
       "invariant: weight of the reconstruction loss on joints recovered by integration over the training window "
       "(in joint-std units; penalises root drift)",
       at_least(0.0));
+    v("root_weight", root_weight,
+      "invariant: weight of the 4 root channels (heading change, xz velocity, height) in the feature losses, "
+      "relative to each other channel's 1 (their errors integrate into the trajectory)",
+      at_least(0.0));
   }
   bool omitted_from_dump() const override {
-    return type == "absolute_joints" && layout == "inv67" && facing_smooth_sigma == 20.0 && world_weight == 0.0;
+    return type == "absolute_joints" && layout == "inv67" && facing_smooth_sigma == 20.0 && world_weight == 0.0 &&
+           root_weight == 1.0;
   }
   std::string validate() const override {
     if (type == "absolute_joints" && !omitted_from_dump())
-      return "layout, facing_smooth_sigma and world_weight apply to representation.type invariant only";
+      return "layout, facing_smooth_sigma, world_weight and root_weight apply to representation.type invariant only";
     return "";
   }
 };
