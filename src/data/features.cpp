@@ -208,23 +208,102 @@ std::vector<float> recover_joints_from_mc67(const float* features, int feature_f
   return out;
 }
 
-std::vector<std::string> feature_layouts() { return {"mc67", "mc67+vel+contact"}; }
+std::vector<float> invariant_features(const float* joints, int frames, const Skeleton& sk, bool extras,
+                                      const FeatureOptions& opt) {
+  const std::vector<double> theta = facing_angles(joints, frames, sk, opt);
+  const std::vector<float> local = local_positions(joints, frames, sk, opt);
+  const int J = sk.num_joints(), D0 = 4 + 3 * (J - 1);
+  std::vector<int> feet = sk.role("left_foot");
+  for (int j : sk.role("right_foot")) feet.push_back(j);
+  const int C = static_cast<int>(feet.size()), D = extras ? D0 + 3 * J + C : D0;
+  std::vector<float> out(static_cast<size_t>(frames) * D, 0.0f);
+  for (int t = 0; t < frames; ++t) {
+    float* o = out.data() + static_cast<size_t>(t) * D;
+    const float* r1 = joint_at(joints, J, t, 0);
+    // Frame -1 is the canonical frame: root at the origin, heading 0.
+    const double theta0 = t > 0 ? theta[t - 1] : 0.0;
+    const double px = t > 0 ? joint_at(joints, J, t - 1, 0)[0] : 0.0, pz = t > 0 ? joint_at(joints, J, t - 1, 0)[2] : 0.0;
+    o[0] = static_cast<float>(wrap_angle(theta[t] - theta0));
+    double vx, vz;
+    to_facing_frame(theta[t], double(r1[0]) - px, double(r1[2]) - pz, vx, vz);
+    o[1] = static_cast<float>(vx);
+    o[2] = static_cast<float>(vz);
+    o[3] = r1[1];
+    std::copy_n(local.data() + static_cast<size_t>(t) * (J - 1) * 3, (J - 1) * 3, o + 4);
+    if (!extras || t == 0) continue;
+    for (int j = 0; j < J; ++j) {
+      const float* p0 = joint_at(joints, J, t - 1, j);
+      const float* p1 = joint_at(joints, J, t, j);
+      double x, z;
+      to_facing_frame(theta[t], double(p1[0]) - p0[0], double(p1[2]) - p0[2], x, z);
+      o[D0 + 3 * j + 0] = static_cast<float>(x);
+      o[D0 + 3 * j + 1] = p1[1] - p0[1];
+      o[D0 + 3 * j + 2] = static_cast<float>(z);
+    }
+    for (int c = 0; c < C; ++c) {
+      const float* p0 = joint_at(joints, J, t - 1, feet[c]);
+      const float* p1 = joint_at(joints, J, t, feet[c]);
+      double d2 = 0;
+      for (int a = 0; a < 3; ++a) d2 += (double(p1[a]) - p0[a]) * (double(p1[a]) - p0[a]);
+      o[D0 + 3 * J + c] = d2 < opt.contact_threshold ? 1.0f : 0.0f;
+    }
+  }
+  if (extras && frames > 1)
+    for (int c = 0; c < C; ++c) out[D0 + 3 * J + c] = out[static_cast<size_t>(D) + D0 + 3 * J + c];
+  return out;
+}
+
+std::vector<float> recover_joints_from_invariant(const float* features, int frames, int num_joints, int dim) {
+  const int J = num_joints;
+  if (dim < 4 + 3 * (J - 1))
+    throw std::invalid_argument(fmt::format("recover_joints_from_invariant: {} columns < 4 + 3(J-1) for {} joints",
+                                            dim, J));
+  std::vector<float> out(static_cast<size_t>(frames) * J * 3);
+  double heading = 0, root_x = 0, root_z = 0;
+  for (int t = 0; t < frames; ++t) {
+    const float* f = features + static_cast<size_t>(t) * dim;
+    heading += f[0];
+    double dx, dz;
+    to_facing_frame(-heading, f[1], f[2], dx, dz);  // facing frame of t -> world
+    root_x += dx;
+    root_z += dz;
+    float* o = out.data() + static_cast<size_t>(t) * J * 3;
+    o[0] = static_cast<float>(root_x);
+    o[1] = f[3];
+    o[2] = static_cast<float>(root_z);
+    for (int j = 1; j < J; ++j) {
+      const float* l = f + 4 + (j - 1) * 3;
+      double x, z;
+      to_facing_frame(-heading, l[0], l[2], x, z);
+      o[j * 3 + 0] = static_cast<float>(x + root_x);
+      o[j * 3 + 1] = l[1];
+      o[j * 3 + 2] = static_cast<float>(z + root_z);
+    }
+  }
+  return out;
+}
+
+std::vector<std::string> feature_layouts() { return {"mc67", "mc67+vel+contact", "inv67", "inv67+vel+contact"}; }
 
 int feature_dim(const std::string& layout, const Skeleton& sk) {
   const int J = sk.num_joints();
-  if (layout == "mc67") return 4 + 3 * (J - 1);
-  if (layout == "mc67+vel+contact") {
-    const auto contacts = sk.role("left_foot").size() + sk.role("right_foot").size();
-    return 4 + 3 * (J - 1) + 3 * J + static_cast<int>(contacts);
-  }
+  const auto contacts = static_cast<int>(sk.role("left_foot").size() + sk.role("right_foot").size());
+  if (layout == "mc67" || layout == "inv67") return 4 + 3 * (J - 1);
+  if (layout == "mc67+vel+contact" || layout == "inv67+vel+contact") return 4 + 3 * (J - 1) + 3 * J + contacts;
   const std::string hint = did_you_mean(layout, feature_layouts());
-  fail("unknown feature layout '{}'{}; known layouts: mc67, mc67+vel+contact", layout,
+  fail("unknown feature layout '{}'{}; known layouts: mc67, mc67+vel+contact, inv67, inv67+vel+contact", layout,
        hint.empty() ? "" : " (did you mean '" + hint + "'?)");
+}
+
+int feature_frames(const std::string& layout, int frames) {
+  return layout.rfind("inv67", 0) == 0 ? frames : std::max(frames - 1, 0);
 }
 
 std::vector<float> compute_features(const std::string& layout, const float* joints, int frames, const Skeleton& sk,
                                     const FeatureOptions& opt) {
   const int D = feature_dim(layout, sk);
+  if (layout == "inv67" || layout == "inv67+vel+contact")
+    return invariant_features(joints, frames, sk, layout != "inv67", opt);
   if (layout == "mc67") return mc67_features(joints, frames, sk, opt);
   // mc67+vel+contact: concatenated per frame.
   const std::vector<float> base = mc67_features(joints, frames, sk, opt);
@@ -245,11 +324,11 @@ FeatureSet compute_features(const MotionSet& m, const std::string& layout, const
   FeatureSet fs;
   fs.layout = layout;
   fs.dim = feature_dim(layout, m.skeleton);
-  fs.t_max = std::max(m.t_max - 1, 0);
+  fs.t_max = feature_frames(layout, m.t_max);
   fs.values.assign(m.size() * static_cast<size_t>(fs.t_max) * fs.dim, 0.0f);
   for (size_t i = 0; i < m.size(); ++i) {
     const std::vector<float> f = compute_features(layout, m.clip(i), m.lengths[i], m.skeleton, opt);
-    fs.lengths.push_back(m.lengths[i] - 1);
+    fs.lengths.push_back(feature_frames(layout, m.lengths[i]));
     std::copy(f.begin(), f.end(), fs.values.begin() + i * static_cast<size_t>(fs.t_max) * fs.dim);
   }
   return fs;

@@ -67,10 +67,30 @@ std::vector<float> mc67_features(const float* joints, int frames, const Skeleton
 // frames-1 frames up to that rotation about y and xz translation.
 std::vector<float> recover_joints_from_mc67(const float* features, int feature_frames, int num_joints);
 
-// Named layouts: "mc67" and "mc67+vel+contact" (mc67, joint_velocities, foot_contacts).
+// The translation-invariant per-frame layout the tokenizer reads ("inv67", the same
+// content as mc67 but one row per frame, T rows for T frames, by backward differences):
+// [0] heading change theta[t] - theta[t-1] (radians, wrapped to (-pi, pi]), [1:3] root
+// xz displacement t-1 -> t in the facing frame of t, [3] root height at t, [4:] the
+// local_positions at t. Frame -1 is a virtual canonical frame (root at the origin,
+// heading 0), so row 0 holds theta[0] and root xz at frame 0 (both ~0 for a canonical
+// clip) and recover_joints_from_invariant returns the clip exactly, in its own world
+// frame. With `extras` ("inv67+vel+contact") each row also holds the joint
+// displacements t-1 -> t in the facing frame of t (3J; 0 at t = 0) and the foot
+// contacts of the step t-1 -> t (row 0 copies row 1's): auxiliary targets, unused by
+// the recovery. [frames, 4 + 3(J-1) (+ 3J + C)].
+std::vector<float> invariant_features(const float* joints, int frames, const Skeleton& sk, bool extras,
+                                      const FeatureOptions& opt = {});
+// Inverse of invariant_features (reads the first 4 + 3(J-1) of `dim` columns):
+// heading and root integrated from frame -1 = (origin, heading 0). [frames, J, 3].
+std::vector<float> recover_joints_from_invariant(const float* features, int frames, int num_joints, int dim);
+
+// Named layouts: "mc67" and "mc67+vel+contact" (mc67, joint_velocities, foot_contacts),
+// "inv67" and "inv67+vel+contact" (invariant_features).
 std::vector<std::string> feature_layouts();
 int feature_dim(const std::string& layout, const Skeleton& sk);  // UserError for an unknown layout
-// [frames-1, feature_dim] for one clip of `frames` >= 1 frames (empty when frames == 1).
+// Feature rows of a clip of `frames` frames: frames - 1 (mc67*) or frames (inv67*).
+int feature_frames(const std::string& layout, int frames);
+// [feature_frames, feature_dim] for one clip of `frames` >= 1 frames (mc67*: empty when frames == 1).
 std::vector<float> compute_features(const std::string& layout, const float* joints, int frames, const Skeleton& sk,
                                     const FeatureOptions& opt = {});
 
@@ -78,8 +98,8 @@ std::vector<float> compute_features(const std::string& layout, const float* join
 struct FeatureSet {
   std::string layout;
   int dim = 0;
-  int t_max = 0;               // motion t_max - 1 (a clip of T frames gives T-1 feature frames)
-  std::vector<int> lengths;    // [N] valid feature frames: motion length - 1
+  int t_max = 0;               // feature_frames(layout, motion t_max) (mc67*: T - 1 rows for T frames)
+  std::vector<int> lengths;    // [N] valid feature frames: feature_frames(layout, motion length)
   std::vector<float> values;   // [N, t_max, dim], zero past lengths[i]
   size_t size() const { return lengths.size(); }
   const float* clip(size_t i) const { return values.data() + i * static_cast<size_t>(t_max) * dim; }

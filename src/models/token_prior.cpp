@@ -50,6 +50,7 @@ void TmdPriorConfig::visit_extra(FieldVisitor& v) {
   v("beta_c", beta_c, "c of beta(t) = c (t/(1-t))^a, eq. (18)", positive<double>());
   v("beta_a", beta_a, "a of beta(t) = c (t/(1-t))^a, eq. (18)", positive<double>());
   v("t_eps", t_eps, "training times are drawn from U[0, 1 - t_eps)", in_range(1e-6, 0.5));
+  v("path", path, "metric of eq. (17) and its calibration to the codebook (the paper's by default)");
 }
 
 std::string TokenPriorConfig::validate() const {
@@ -90,6 +91,64 @@ torch::Tensor tmd_beta_prime(const torch::Tensor& t, double c, double a) {
 torch::Tensor tmd_path_probs(const torch::Tensor& dist, const torch::Tensor& x1, const torch::Tensor& beta) {
   auto rows = F::embedding(x1, dist);                        // d(., x1) = d(x1, .) [..., K]
   return torch::softmax(-beta.unsqueeze(-1) * rows, -1);     // eq. (18)
+}
+
+namespace {
+
+// Mean over codes of q_t(x1|x1) = 1 / sum_i exp(-beta d(i, x1)) (d(x1, x1) = 0).
+double mean_q_self(const torch::Tensor& d64, double beta) {
+  return (1.0 / torch::exp(-beta * d64).sum(1)).mean().item<double>();
+}
+
+}  // namespace
+
+TmdPathTable tmd_path_table(const torch::Tensor& codebook, const TmdPathConfig& path, double c, double a) {
+  torch::NoGradGuard ng;
+  auto e = codebook.detach().to(torch::kCPU, torch::kFloat64);
+  const int64_t K = e.size(0), D = e.size(1);
+  if (path.metric != "cosine") e = e - e.mean(0, true);
+  if (path.metric == "whitened_cosine") {
+    // ZCA whitening with a ridge of 1e-6 of the mean variance (rank-deficient codebooks).
+    auto cov = torch::matmul(e.t(), e) / std::max<int64_t>(1, K - 1);
+    auto ridge = 1e-6 * cov.diagonal().mean().item<double>() + 1e-12;
+    auto [evals, evecs] = torch::linalg_eigh(cov + ridge * torch::eye(D, torch::kFloat64));
+    auto w = torch::matmul(evecs * evals.clamp_min(ridge).rsqrt().unsqueeze(0), evecs.t());
+    e = torch::matmul(e, w);
+  }
+  auto n = F::normalize(e, F::NormalizeFuncOptions().p(2).dim(1).eps(1e-12));
+  auto d = (2.0 - 2.0 * torch::matmul(n, n.t()).clamp(-1.0, 1.0)).pow(2);
+  d.fill_diagonal_(0.0);
+  TmdPathTable out;
+  if (path.calibration == "q_target") {
+    const double t = path.target_t, beta = c * std::pow(t / (1 - t), a);
+    if (mean_q_self(d, beta) < path.target_q) {
+      double lo = 0.0, hi = std::log(1e8);  // log s
+      if (mean_q_self(d, beta * std::exp(hi)) < path.target_q)
+        fail("tmd path calibration: even s = 1e8 leaves mean q_{}(x1|x1) below {}: the codebook has (near-)duplicate "
+             "codes; use path.metric centered_cosine / whitened_cosine or a lower target_q",
+             t, path.target_q);
+      for (int it = 0; it < 100; ++it) {
+        const double mid = 0.5 * (lo + hi);
+        (mean_q_self(d, beta * std::exp(mid)) < path.target_q ? lo : hi) = mid;
+      }
+      out.scale = std::exp(hi);
+    }
+  } else if (path.calibration != "none") {
+    fail("unknown tmd path calibration '{}' (none or q_target)", path.calibration);
+  }
+  out.dist = (d * out.scale).to(torch::kFloat32);
+  return out;
+}
+
+TmdPathStats tmd_path_stats(const torch::Tensor& dist, double t, double c, double a) {
+  torch::NoGradGuard ng;
+  auto d = dist.detach().to(torch::kCPU, torch::kFloat64);
+  const double beta = t <= 0 ? 0.0 : c * std::pow(t / (1 - t), a);
+  auto logq = torch::log_softmax(-beta * d, 1);  // row x1: log q_t(. | x1)
+  TmdPathStats s;
+  s.q_self = logq.diagonal().exp().mean().item<double>();
+  s.effective_codes = torch::exp(-(logq.exp() * logq).sum(1)).mean().item<double>();
+  return s;
 }
 
 // ---------------------------------------------------------------- masking
@@ -254,7 +313,14 @@ class TokenPriorTrainer : public Trainable {
     net_ = TokenPriorNet(vocab_.size(), K_, c);
     {
       torch::NoGradGuard ng;
-      net_->distance.copy_(tok.model->token_distance_table());
+      if (tmd_) {
+        auto table = tmd_path_table(tok.model->codebook(), tmd_->path, tmd_->beta_c, tmd_->beta_a);
+        net_->distance.copy_(table.dist);
+        path_scale_ = table.scale;
+        paper_dist_ = tmd_path_table(tok.model->codebook(), TmdPathConfig{}, 3.0, 0.9).dist;
+      } else {
+        net_->distance.copy_(tok.model->token_distance_table());
+      }
     }
     auto clips = tokenize_clips(*tok.model, set, ctx.device);
     tokens_ = clips.tokens;
@@ -315,6 +381,28 @@ class TokenPriorTrainer : public Trainable {
     }
     out["val_ce"] = total / cfg().eval_t.size();
     out["val_acc"] = total_acc / cfg().eval_t.size();
+    if (tmd_) {
+      // How concentrated the corruption path is on this codebook (issue 15): mean
+      // q_t(x1|x1) and effective codes exp(H) per t, for the path trained with and for
+      // the paper's (plain cosine, c = 3, a = 0.9) beside it.
+      out["path_scale"] = path_scale_;
+      out["path_c_effective"] = tmd_->beta_c * path_scale_;
+      for (double tv : cfg().eval_t) {
+        auto st = tmd_path_stats(net_->distance, tv, tmd_->beta_c, tmd_->beta_a);
+        auto sp = tmd_path_stats(paper_dist_, tv, 3.0, 0.9);
+        out[fmt::format("path_q_self_t{:.2f}", tv)] = st.q_self;
+        out[fmt::format("path_eff_codes_t{:.2f}", tv)] = st.effective_codes;
+        out[fmt::format("paper_path_q_self_t{:.2f}", tv)] = sp.q_self;
+        out[fmt::format("paper_path_eff_codes_t{:.2f}", tv)] = sp.effective_codes;
+      }
+      // Code usage of the training data: exp entropy of the token histogram.
+      auto counts = torch::bincount(tokens_.masked_select(torch::arange(tokens_.size(1)).unsqueeze(0) <
+                                                          token_lengths_.unsqueeze(1)),
+                                    {}, K_)
+                        .to(torch::kFloat64);
+      auto p = counts / counts.sum().clamp_min(1.0);
+      out["data_code_perplexity"] = torch::exp(-(p * torch::log(p + 1e-12)).sum()).item<double>();
+    }
     return out;
   }
 
@@ -327,8 +415,11 @@ class TokenPriorTrainer : public Trainable {
     e << YAML::BeginMap << YAML::Key << "fps" << YAML::Value << set.fps << YAML::Key << "t_max" << YAML::Value
       << set.t_max << YAML::Key << "num_joints" << YAML::Value << set.num_joints() << YAML::Key << "data"
       << YAML::Value << ctx_.data->source() << YAML::Key << "tokenizer_run" << YAML::Value << tokenizer_run_
-      << YAML::Key << "codebook_size" << YAML::Value << K_ << YAML::Key << "stride" << YAML::Value << stride_
-      << YAML::Key << "skeleton" << YAML::Value << YAML::Literal << skeleton_to_yaml(set.skeleton) << YAML::EndMap;
+      << YAML::Key << "codebook_size" << YAML::Value << K_ << YAML::Key << "stride" << YAML::Value << stride_;
+    if (tmd_)
+      e << YAML::Key << "path_scale" << YAML::Value << path_scale_ << YAML::Key << "beta_c_effective" << YAML::Value
+        << tmd_->beta_c * path_scale_;
+    e << YAML::Key << "skeleton" << YAML::Value << YAML::Literal << skeleton_to_yaml(set.skeleton) << YAML::EndMap;
     write_file_atomic(outputs / kMetaFile, std::string(e.c_str()) + "\n");
   }
 
@@ -389,6 +480,8 @@ class TokenPriorTrainer : public Trainable {
   TokenPriorNet net_{nullptr};
   std::string tokenizer_run_;
   int64_t K_ = 0, stride_ = 4;
+  double path_scale_ = 1.0;      // TMD: s of the calibrated table (1 = the paper's path)
+  torch::Tensor paper_dist_;     // TMD: the paper's table (plain cosine), for the diagnostics
   torch::Tensor tokens_;         // [N, L] int64 CPU: every clip's codes
   torch::Tensor token_lengths_;  // [N] valid tokens = ceil(length / stride)
 };

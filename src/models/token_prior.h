@@ -43,10 +43,36 @@ struct TokenPriorConfig : Config {
   virtual void visit_extra(FieldVisitor& v) { (void)v; }
 };
 
+// `model.path` of a TMD prior: how the metric d of eq. (17) is built from the
+// codebook and calibrated to it. Absent from the dump at the paper's setting (plain
+// cosine, no calibration), so priors trained before it keep their config hash.
+struct TmdPathConfig : Config {
+  std::string metric = "cosine";      // cosine | centered_cosine | whitened_cosine
+  std::string calibration = "none";   // none | q_target
+  double target_q = 0.5;              // q_target: mean over codes of q_t(x1 | x1) ...
+  double target_t = 0.9;              // ... reaches target_q at this t
+  void visit(FieldVisitor& v) override {
+    v("metric", metric,
+      "codebook vectors the cosine of eq. (17) reads: cosine (the paper: raw codes), centered_cosine (codebook mean "
+      "removed), whitened_cosine (centred and ZCA-whitened)",
+      one_of({"cosine", "centered_cosine", "whitened_cosine"}));
+    v("calibration", calibration,
+      "none (the paper's beta(t)) or q_target: the distance table is scaled by s >= 1 (equivalently c -> c s) so "
+      "that the mean over codes of q_t(x1|x1) is target_q at t = target_t",
+      one_of({"none", "q_target"}));
+    v("target_q", target_q, "q_target: mean q_t(x1|x1) to reach at target_t", in_range(0.01, 0.99));
+    v("target_t", target_t, "q_target: the time at which target_q is reached", in_range(0.05, 0.99));
+  }
+  bool omitted_from_dump() const override {
+    return metric == "cosine" && calibration == "none" && target_q == 0.5 && target_t == 0.9;
+  }
+};
+
 struct TmdPriorConfig : TokenPriorConfig {
   double beta_c = 3.0;  // beta(t) = c (t / (1 - t))^a, eq. (18)
   double beta_a = 0.9;
   double t_eps = 1e-3;  // training times t ~ U[0, 1 - t_eps) keep beta finite
+  TmdPathConfig path;   // metric and calibration (the paper's by default)
   bool is_tmd() const override { return true; }
 
  protected:
@@ -66,6 +92,23 @@ torch::Tensor tmd_beta_prime(const torch::Tensor& t, double c, double a);
 // eq. (18): q_t(i | x1) = softmax_i(-beta d(i, x1)) for x1 [...] int64 and beta
 // broadcastable to x1's shape; dist [K, K] symmetric. -> [..., K].
 torch::Tensor tmd_path_probs(const torch::Tensor& dist, const torch::Tensor& x1, const torch::Tensor& beta);
+
+// The distance table of eq. (17) for a codebook [K, D] under `path`: d(i, j) =
+// s (2 - 2 cos(e~_i, e~_j))^2 with e~ the raw, centred or whitened codes, zero
+// diagonal, and s = 1 (calibration none) or the smallest s >= 1 making the mean over
+// codes of q_{target_t}(x1|x1) >= target_q with beta(t) = c (t/(1-t))^a (bisection;
+// scaling d by s is the same path as c -> c s). Deterministic (double precision).
+struct TmdPathTable {
+  torch::Tensor dist;  // [K, K] float32
+  double scale = 1.0;  // s
+};
+TmdPathTable tmd_path_table(const torch::Tensor& codebook, const TmdPathConfig& path, double c, double a);
+// Concentration of the path q_t(.|x1) at time t, averaged uniformly over x1: mean
+// q_t(x1|x1) and the effective number of codes exp(H(q_t(.|x1))).
+struct TmdPathStats {
+  double q_self = 0, effective_codes = 0;
+};
+TmdPathStats tmd_path_stats(const torch::Tensor& dist, double t, double c, double a);
 
 // ---------------------------------------------------------------- masking
 

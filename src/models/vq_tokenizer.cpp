@@ -6,8 +6,12 @@
 
 #include <cmath>
 
+#include <random>
+
+#include "control/anchors.h"
 #include "core/atomic_file.h"
 #include "core/error.h"
+#include "data/normalizer.h"
 #include "eval/metrics.h"
 #include "train/trainer.h"
 
@@ -107,18 +111,34 @@ QuantizerOutput EmaQuantizerImpl::forward(const torch::Tensor& z, const torch::T
 VqTokenizerImpl::VqTokenizerImpl(const VqTokenizerOptions& o) : options(o) {
   if (o.conv.latent != o.quant.code_dim)
     fail("vq tokenizer: encoder latent size {} differs from code_dim {}", o.conv.latent, o.quant.code_dim);
-  if (o.conv.in_dim % 3 != 0) fail("vq tokenizer: input size {} is not J*3", o.conv.in_dim);
+  if (o.representation.invariant()) {
+    if (o.num_joints < 2) fail("vq tokenizer: the invariant representation needs num_joints >= 2");
+    if (o.skeleton.num_joints() != o.num_joints)
+      fail("vq tokenizer: the invariant representation needs the skeleton ({} joints, options say {})",
+           o.skeleton.num_joints(), o.num_joints);
+    const int F = feature_dim(o.representation.layout, o.skeleton);
+    if (o.conv.in_dim != F)
+      fail("vq tokenizer: input size {} differs from the {} feature size {}", o.conv.in_dim, o.representation.layout, F);
+  } else if (o.representation.type != "absolute_joints") {
+    fail("vq tokenizer: unknown representation '{}' (absolute_joints or invariant)", o.representation.type);
+  } else if (o.conv.in_dim % 3 != 0) {
+    fail("vq tokenizer: input size {} is not J*3", o.conv.in_dim);
+  }
   encoder = register_module("encoder", ConvMotionEncoder(o.conv));
   quantizer = register_module("quantizer", EmaQuantizer(o.quant));
   decoder = register_module("decoder", ConvMotionDecoder(o.conv));
   joint_mean = register_buffer("joint_mean", torch::zeros({3}));
   joint_std = register_buffer("joint_std", torch::ones({3}));
+  if (o.representation.invariant()) {
+    feature_mean = register_buffer("feature_mean", torch::zeros({o.conv.in_dim}));
+    feature_std = register_buffer("feature_std", torch::ones({o.conv.in_dim}));
+  }
 }
 
 namespace {
 
 torch::Tensor masked_input(const torch::Tensor& x, const torch::Tensor& mask, int64_t stride) {
-  if (x.dim() != 3) fail("vq tokenizer: expected motion [B, T, J*3], got {} dimensions", x.dim());
+  if (x.dim() != 3) fail("vq tokenizer: expected motion [B, T, C], got {} dimensions", x.dim());
   if (x.size(1) % stride != 0)
     fail("vq tokenizer: {} frames is not a multiple of the token stride {}; pad the clip", x.size(1), stride);
   if (!mask.defined()) return x;
@@ -126,6 +146,61 @@ torch::Tensor masked_input(const torch::Tensor& x, const torch::Tensor& mask, in
 }
 
 }  // namespace
+
+torch::Tensor recover_world_from_invariant(const torch::Tensor& f, int64_t J) {
+  using torch::indexing::Slice;
+  auto heading = f.select(-1, 0).cumsum(-1);  // [..., T]
+  auto c = heading.cos(), s = heading.sin();
+  auto vx = f.select(-1, 1), vz = f.select(-1, 2);
+  // facing frame of t -> world: R_y(theta) (the inverse of to_facing_frame).
+  auto root_x = (c * vx + s * vz).cumsum(-1);
+  auto root_z = (c * vz - s * vx).cumsum(-1);
+  auto sizes = f.sizes().vec();
+  sizes.pop_back();
+  auto lsizes = sizes;
+  lsizes.push_back(J - 1);
+  lsizes.push_back(3);
+  auto local = f.narrow(-1, 4, 3 * (J - 1)).reshape(lsizes);  // [..., T, J-1, 3]
+  auto lx = local.select(-1, 0), ly = local.select(-1, 1), lz = local.select(-1, 2);
+  auto cu = c.unsqueeze(-1), su = s.unsqueeze(-1);
+  auto wx = cu * lx + su * lz + root_x.unsqueeze(-1);
+  auto wz = cu * lz - su * lx + root_z.unsqueeze(-1);
+  auto others = torch::stack({wx, ly, wz}, -1);                                 // [..., T, J-1, 3]
+  auto root = torch::stack({root_x, f.select(-1, 3), root_z}, -1).unsqueeze(-2);  // [..., T, 1, 3]
+  return torch::cat({root, others}, -2);
+}
+
+torch::Tensor VqTokenizerImpl::model_input(const torch::Tensor& x, const torch::Tensor& mask) const {
+  const int64_t s = stride();
+  if (!invariant()) return masked_input(x, mask, s);
+  if (x.dim() != 3 || x.size(2) != num_joints() * 3)
+    fail("vq tokenizer: expected normalised joints [B, T, {}], got {} dimensions of last size {}", num_joints() * 3,
+         x.dim(), x.size(-1));
+  if (x.size(1) % s != 0)
+    fail("vq tokenizer: {} frames is not a multiple of the token stride {}; pad the clip", x.size(1), s);
+  torch::NoGradGuard ng;
+  const int64_t B = x.size(0), T = x.size(1), J = num_joints(), F = input_dim();
+  auto world = denormalize(x.detach().view({B, T, J, 3})).to(torch::kCPU, torch::kFloat32).contiguous();
+  auto lengths = mask.defined() ? mask.to(torch::kCPU).sum(1).to(torch::kLong) : torch::full({B}, T, torch::kLong);
+  auto out = torch::zeros({B, T, F});
+  auto mean = feature_mean.to(torch::kCPU), sd = feature_std.to(torch::kCPU);
+  for (int64_t b = 0; b < B; ++b) {
+    const int n = static_cast<int>(lengths[b].item<int64_t>());
+    if (n < 1) continue;
+    auto f = compute_features(options.representation.layout, world[b].data_ptr<float>(), n, options.skeleton,
+                              options.representation.features);
+    auto ft = torch::from_blob(f.data(), {n, F}, torch::kFloat32);
+    out[b].narrow(0, 0, n).copy_((ft - mean) / sd);
+  }
+  return out.to(x.device(), x.scalar_type());
+}
+
+torch::Tensor VqTokenizerImpl::model_output_to_joints(const torch::Tensor& y) const {
+  if (!invariant()) return y;
+  auto f = y * feature_std.to(y.device(), y.scalar_type()) + feature_mean.to(y.device(), y.scalar_type());
+  auto world = recover_world_from_invariant(f, num_joints());  // [B, T, J, 3]
+  return normalize(world).flatten(-2);
+}
 
 VqOutput VqTokenizerImpl::forward(const torch::Tensor& x, const torch::Tensor& mask) {
   const int64_t s = stride();
@@ -144,17 +219,19 @@ VqOutput VqTokenizerImpl::forward(const torch::Tensor& x, const torch::Tensor& m
 }
 
 torch::Tensor VqTokenizerImpl::encode(const torch::Tensor& x, const torch::Tensor& mask) {
-  return quantizer->assign(encoder(masked_input(x, mask, stride())));
+  return quantizer->assign(encoder(model_input(x, mask)));
 }
 
-torch::Tensor VqTokenizerImpl::decode(const torch::Tensor& ids) { return decoder(quantizer->lookup(ids)); }
+torch::Tensor VqTokenizerImpl::decode(const torch::Tensor& ids) {
+  return model_output_to_joints(decoder(quantizer->lookup(ids)));
+}
 
-torch::Tensor VqTokenizerImpl::decode_embeddings(const torch::Tensor& u) { return decoder(u); }
+torch::Tensor VqTokenizerImpl::decode_embeddings(const torch::Tensor& u) { return model_output_to_joints(decoder(u)); }
 
 torch::Tensor VqTokenizerImpl::soft_decode(const torch::Tensor& probs) {
   if (probs.size(-1) != codebook_size())
     fail("soft_decode: last dimension {} is not the codebook size {}", probs.size(-1), codebook_size());
-  return decoder(torch::matmul(probs, codebook().to(probs.dtype())));
+  return model_output_to_joints(decoder(torch::matmul(probs, codebook().to(probs.dtype()))));
 }
 
 torch::Tensor VqTokenizerImpl::normalized_codebook() const {
@@ -178,9 +255,15 @@ torch::Tensor VqTokenizerImpl::denormalize(const torch::Tensor& normed) const {
   return normed * joint_std.to(normed.device()) + joint_mean.to(normed.device());
 }
 
-VqTokenizerOptions vq_tokenizer_options(const VqTokenizerConfig& c, int num_joints) {
+VqTokenizerOptions vq_tokenizer_options(const VqTokenizerConfig& c, const Skeleton& skeleton) {
   VqTokenizerOptions o;
-  o.conv.in_dim = num_joints * 3;
+  const int num_joints = skeleton.num_joints();
+  o.num_joints = num_joints;
+  o.skeleton = skeleton;
+  o.representation.type = c.representation.type;
+  o.representation.layout = c.representation.layout;
+  o.representation.features.facing_smooth_sigma = c.representation.facing_smooth_sigma;
+  o.conv.in_dim = o.representation.invariant() ? feature_dim(c.representation.layout, skeleton) : num_joints * 3;
   o.conv.width = c.width;
   o.conv.latent = c.code_dim;
   o.conv.down_stages = c.down_stages;
@@ -200,14 +283,28 @@ namespace {
 
 const char* kMetaFile = "tokenizer_meta.yaml";
 
+// The oracle's anchor counts: AnchorRoute's K in {2, 4, 8, 16, 32}, averaged per K then over K.
+const int kOracleCounts[] = {2, 4, 8, 16, 32};
+
 class VqTokenizerTrainer : public Trainable {
  public:
   VqTokenizerTrainer(const VqTokenizerConfig& c, const TrainContext& ctx) : cfg_(c), ctx_(ctx) {
-    model_ = VqTokenizer(vq_tokenizer_options(c, ctx.data->num_joints()));
+    const MotionSet& set = ctx.data->set();
+    model_ = VqTokenizer(vq_tokenizer_options(c, set.skeleton));
     {
       torch::NoGradGuard ng;
       model_->joint_mean.copy_(ctx.data->joint_mean());
       model_->joint_std.copy_(ctx.data->joint_std());
+      if (model_->invariant()) {
+        // The same train-split statistics as the dataset's own feature stats (two-pass,
+        // population std floored at 1e-4), for this feature layout.
+        NormOptions no;
+        no.feature_layout = c.representation.layout;
+        no.features = model_->options.representation.features;
+        NormStats st = compute_norm_stats(set, no);
+        model_->feature_mean.copy_(torch::tensor(st.feature_mean));
+        model_->feature_std.copy_(torch::tensor(st.feature_std));
+      }
     }
     stride_ = static_cast<int>(model_->stride());
     if (ctx.window > 0 && ctx.window % stride_ != 0)
@@ -222,12 +319,24 @@ class VqTokenizerTrainer : public Trainable {
   torch::nn::Module& module() override { return *model_; }
 
   LossOutput loss(const std::vector<int64_t>& idx) override {
-    MotionBatch b = ctx_.data->batch(idx, ctx_.window, stride_, ctx_.device);
-    auto x = b.joints.flatten(2);  // [B, T, J*3]
-    auto out = model_->forward(x, b.mask);
-    auto m = b.mask.unsqueeze(-1).to(x.dtype());
+    torch::Tensor x, mask;
+    if (model_->invariant()) {
+      std::tie(x, mask) = feature_batch(idx);
+    } else {
+      MotionBatch b = ctx_.data->batch(idx, ctx_.window, stride_, ctx_.device);
+      x = b.joints.flatten(2);  // [B, T, J*3]
+      mask = b.mask;
+    }
+    auto out = model_->forward(x, mask);
+    auto m = mask.unsqueeze(-1).to(x.dtype());
+    if (model_->invariant() && cfg_.representation.root_weight != 1.0) {
+      // Per-channel weights (root channels root_weight, the rest 1), normalised to mean 1.
+      auto w = torch::ones({x.size(2)}, x.options());
+      w.narrow(0, 0, 4).fill_(cfg_.representation.root_weight);
+      m = m * (w / w.mean());
+    }
     auto rec = masked_mean(elementwise(out.recon, x), m, x.size(2));
-    auto mv = m.slice(1, 1) * m.slice(1, 0, -1);
+    auto mv = m.slice(1, 1) * mask.slice(1, 0, -1).unsqueeze(-1).to(x.dtype());
     auto vel = masked_mean(elementwise(out.recon.diff(1, 1), x.diff(1, 1)), mv, x.size(2));
     LossOutput lo;
     lo.loss = rec + cfg_.velocity_weight * vel + out.commit_loss;
@@ -236,55 +345,53 @@ class VqTokenizerTrainer : public Trainable {
                 {"commit", out.commit_loss.detach()},
                 {"perplexity", out.perplexity},
                 {"resets", out.resets.to(torch::kFloat32)}};
+    if (model_->invariant() && cfg_.representation.world_weight > 0) {
+      // Joints recovered by integration over the window (from the frame before it),
+      // prediction against target: the mean per-joint Euclidean error in metres
+      // (MPJPE; its gradient does not fade as the drift gets small, as a squared one would).
+      const int64_t J = model_->num_joints();
+      auto fm = model_->feature_mean, fs = model_->feature_std;
+      auto wy = recover_world_from_invariant(out.recon * fs + fm, J);
+      auto wx = recover_world_from_invariant(x * fs + fm, J);
+      auto mw = mask.unsqueeze(-1).to(x.dtype());  // [B, T, 1]
+      auto err = ((wy - wx).pow(2).sum(-1) + 1e-12).sqrt();  // [B, T, J]
+      auto world = (err * mw).sum() / (mw.sum() * J + 1e-8);
+      lo.loss = lo.loss + cfg_.representation.world_weight * world;
+      lo.parts.emplace_back("world", world.detach());
+    }
     return lo;
   }
 
-  // Whole test clips: reconstruction MPJPE (metres, plain and root-aligned), the
-  // mean-training-pose baseline, code perplexity and codes unused on the split.
+  // Whole clips through encode -> decode (world metres): test-split reconstruction
+  // MPJPE (plain and root-aligned), the mean-training-pose baseline, code perplexity,
+  // codes unused on the split; and the oracle control error on the val split.
   std::map<std::string, double> evaluate() override {
     torch::NoGradGuard ng;
     const MotionSet& set = ctx_.data->set();
     const int J = set.num_joints();
-    auto idx = ctx_.data->split("test");
-    std::vector<std::vector<float>> recon_store, gt_store;
-    std::vector<int> lengths;
-    auto counts = torch::zeros({cfg_.codebook_size}, torch::kLong);
-    for (size_t s = 0; s < idx.size(); s += 32) {
-      std::vector<int64_t> chunk(idx.begin() + s, idx.begin() + std::min(idx.size(), s + 32));
-      MotionBatch b = ctx_.data->batch(chunk, 0, stride_, ctx_.device);
-      auto out = model_->forward(b.joints.flatten(2), b.mask);
-      auto y = ctx_.data->denormalize(out.recon.view_as(b.joints)).to(torch::kCPU).contiguous();
-      auto tv = b.mask.slice(1, 0, b.mask.size(1), stride_).to(torch::kCPU);
-      counts += torch::bincount(out.ids.to(torch::kCPU).index({tv}), {}, cfg_.codebook_size);
-      const int64_t T = y.size(1);
-      for (size_t k = 0; k < chunk.size(); ++k) {
-        const float* p = y[k].data_ptr<float>();
-        recon_store.emplace_back(p, p + T * J * 3);
-        const float* g = set.clip(chunk[k]);
-        std::vector<float> gt(T * J * 3, 0.f);
-        std::copy(g, g + std::min<int64_t>(T, set.t_max) * J * 3, gt.begin());
-        gt_store.push_back(std::move(gt));
-        lengths.push_back(set.lengths[chunk[k]]);
-      }
-    }
+    Reconstructed test = reconstruct(ctx_.data->split("test"));
     std::vector<JointsView> rec_v, gt_v, mean_v;
-    const int T = static_cast<int>(recon_store.front().size() / (J * 3));
-    for (size_t i = 0; i < recon_store.size(); ++i) {
-      rec_v.push_back(joints_view(recon_store[i], T, J, lengths[i], "reconstruction"));
-      gt_v.push_back(joints_view(gt_store[i], T, J, lengths[i], "ground truth"));
+    const int T = test.frames;
+    for (size_t i = 0; i < test.recon.size(); ++i) {
+      rec_v.push_back(joints_view(test.recon[i], T, J, test.lengths[i], "reconstruction"));
+      gt_v.push_back(joints_view(test.gt[i], T, J, test.lengths[i], "ground truth"));
     }
     std::vector<float> mean_pose = mean_training_pose(T);
-    for (size_t i = 0; i < gt_v.size(); ++i) mean_v.push_back(joints_view(mean_pose, T, J, lengths[i], "mean pose"));
+    for (size_t i = 0; i < gt_v.size(); ++i)
+      mean_v.push_back(joints_view(mean_pose, T, J, test.lengths[i], "mean pose"));
 
-    auto p = counts.to(torch::kFloat64) / counts.sum().clamp_min(1).to(torch::kFloat64);
+    auto p = test.counts.to(torch::kFloat64) / test.counts.sum().clamp_min(1).to(torch::kFloat64);
     double perplexity = torch::exp(-(p * torch::log(p + 1e-10)).sum()).item<double>();
     auto ema_dead = model_->quantizer->cluster_size < cfg_.reset_threshold;
-    return {{"test_mpjpe_m", reconstruction_mpjpe(rec_v, gt_v)},
-            {"test_mpjpe_root_aligned_m", reconstruction_mpjpe(rec_v, gt_v, true)},
-            {"test_mean_pose_mpjpe_m", reconstruction_mpjpe(mean_v, gt_v)},
-            {"test_perplexity", perplexity},
-            {"test_dead_codes", static_cast<double>((counts == 0).sum().item<int64_t>())},
-            {"ema_dead_codes", static_cast<double>(ema_dead.sum().item<int64_t>())}};
+    std::map<std::string, double> out = {
+        {"test_mpjpe_m", reconstruction_mpjpe(rec_v, gt_v)},
+        {"test_mpjpe_root_aligned_m", reconstruction_mpjpe(rec_v, gt_v, true)},
+        {"test_mean_pose_mpjpe_m", reconstruction_mpjpe(mean_v, gt_v)},
+        {"test_perplexity", perplexity},
+        {"test_dead_codes", static_cast<double>((test.counts == 0).sum().item<int64_t>())},
+        {"ema_dead_codes", static_cast<double>(ema_dead.sum().item<int64_t>())}};
+    for (auto& [k, v] : oracle_control_error()) out[k] = v;
+    return out;
   }
 
   void save_artifacts(const fs::path& outputs) override {
@@ -298,11 +405,114 @@ class VqTokenizerTrainer : public Trainable {
   }
 
  private:
+  struct Reconstructed {
+    int frames = 0;                              // padded length (a multiple of the stride)
+    std::vector<std::vector<float>> recon, gt;   // [T, J, 3] world metres each
+    std::vector<int> lengths;
+    torch::Tensor counts;                        // [K] code histogram over the valid tokens
+  };
+
+  // Whole clips of `idx`: tokens of the ground truth decoded back to world joints.
+  Reconstructed reconstruct(const std::vector<int64_t>& idx) {
+    const MotionSet& set = ctx_.data->set();
+    const int J = set.num_joints();
+    Reconstructed r;
+    r.counts = torch::zeros({cfg_.codebook_size}, torch::kLong);
+    for (size_t s = 0; s < idx.size(); s += 32) {
+      std::vector<int64_t> chunk(idx.begin() + s, idx.begin() + std::min(idx.size(), s + 32));
+      MotionBatch b = ctx_.data->batch(chunk, 0, stride_, ctx_.device);
+      auto ids = model_->encode(b.joints.flatten(2), b.mask);
+      auto y = ctx_.data->denormalize(model_->decode(ids).view_as(b.joints)).to(torch::kCPU).contiguous();
+      auto tv = b.mask.slice(1, 0, b.mask.size(1), stride_).to(torch::kCPU);
+      r.counts += torch::bincount(ids.to(torch::kCPU).index({tv}), {}, cfg_.codebook_size);
+      const int64_t T = y.size(1);
+      r.frames = static_cast<int>(T);
+      for (size_t k = 0; k < chunk.size(); ++k) {
+        const float* p = y[k].data_ptr<float>();
+        r.recon.emplace_back(p, p + T * J * 3);
+        const float* g = set.clip(chunk[k]);
+        std::vector<float> gt(T * J * 3, 0.f);
+        std::copy(g, g + std::min<int64_t>(T, set.t_max) * J * 3, gt.begin());
+        r.gt.push_back(std::move(gt));
+        r.lengths.push_back(set.lengths[chunk[k]]);
+      }
+    }
+    return r;
+  }
+
+  // The oracle control error (issue 15): ground-truth tokens -> decoder -> AnchorRoute
+  // anchor error (mean Euclidean, xz for planar root), per family, on the val split;
+  // per clip one anchor set per K in {2, 4, 8, 16, 32} (draw_anchor_set, seeded by
+  // (clip, K, family)), averaged per K then over K as the AnchorRoute tables are.
+  std::map<std::string, double> oracle_control_error() {
+    const MotionSet& set = ctx_.data->set();
+    const int J = set.num_joints();
+    std::vector<int64_t> idx;
+    for (size_t i : set.indices_of_split("val")) idx.push_back(static_cast<int64_t>(i));
+    if (idx.empty()) return {};
+    Reconstructed r = reconstruct(idx);
+    std::map<std::string, double> out;
+    double all = 0;
+    int families = 0;
+    for (AnchorFamily fam : {AnchorFamily::root_3d, AnchorFamily::planar_root, AnchorFamily::body_point}) {
+      double sum_k = 0;
+      int n_k = 0;
+      for (int K : kOracleCounts) {
+        double sum = 0;
+        size_t n = 0;
+        for (size_t i = 0; i < idx.size(); ++i) {
+          if (r.lengths[i] < K) continue;
+          std::seed_seq seq{20250115u, static_cast<unsigned>(idx[i]), static_cast<unsigned>(K),
+                            static_cast<unsigned>(fam)};
+          std::mt19937_64 rng(seq);
+          AnchorSet a = draw_anchor_set(fam, K, r.gt[i].data(), r.lengths[i], J, rng);
+          for (double e : anchor_errors(a, r.recon[i].data(), J)) sum += e, ++n;
+        }
+        if (n == 0) continue;
+        sum_k += sum / n;
+        ++n_k;
+      }
+      if (n_k == 0) continue;
+      out["val_oracle_" + family_name(fam) + "_m"] = sum_k / n_k;
+      all += sum_k / n_k;
+      ++families;
+    }
+    if (families > 0) out["val_oracle_control_error_m"] = all / families;
+    return out;
+  }
+
+  // Invariant training batch: each clip's features over the whole clip (so a window's
+  // first row holds the real step from the frame before it), normalised, cropped like
+  // MotionDataset::batch (same random draws), padded to a multiple of the stride.
+  std::pair<torch::Tensor, torch::Tensor> feature_batch(const std::vector<int64_t>& idx) {
+    const MotionSet& set = ctx_.data->set();
+    const int64_t B = idx.size(), F = model_->input_dim();
+    int64_t T = ctx_.window > 0 ? ctx_.window : set.t_max;
+    if (stride_ > 1) T = (T + stride_ - 1) / stride_ * stride_;
+    auto x = torch::zeros({B, T, F});
+    auto mask = torch::zeros({B, T}, torch::kBool);
+    auto mean = model_->feature_mean.to(torch::kCPU), sd = model_->feature_std.to(torch::kCPU);
+    for (int64_t b = 0; b < B; ++b) {
+      const int64_t len = set.lengths[idx[b]];
+      int64_t start = 0, take = std::min(len, T);
+      if (ctx_.window > 0 && len > T) start = torch::randint(0, len - T + 1, {1}).item<int64_t>();
+      auto f = compute_features(cfg_.representation.layout, set.clip(idx[b]), static_cast<int>(len), set.skeleton,
+                                model_->options.representation.features);
+      auto ft = torch::from_blob(f.data(), {len, F}, torch::kFloat32).narrow(0, start, take);
+      x[b].narrow(0, 0, take).copy_((ft - mean) / sd);
+      mask[b].narrow(0, 0, take).fill_(true);
+    }
+    return {x.to(ctx_.device), mask.to(ctx_.device)};
+  }
+
   torch::Tensor elementwise(const torch::Tensor& y, const torch::Tensor& x) const {
     if (cfg_.recon_loss == "mse") return (y - x).pow(2);
     return F::smooth_l1_loss(y, x, F::SmoothL1LossFuncOptions().reduction(torch::kNone));
   }
+  // m [B, T, 1] (a frame mask: the mean over frames and `dim` channels) or [B, T, C]
+  // (per-channel weights times the mask: the weighted mean).
   static torch::Tensor masked_mean(const torch::Tensor& v, const torch::Tensor& m, int64_t dim) {
+    if (m.size(-1) > 1) return (v * m).sum() / (m.sum() + 1e-8);
     return (v * m).sum() / (m.sum() * dim + 1e-8);
   }
   // Per-joint mean world position over the valid training frames, repeated over T.
@@ -379,7 +589,7 @@ LoadedVqTokenizer load_vq_tokenizer(const std::string& run_dir, torch::Device de
   if (num_joints != out.skeleton.num_joints())
     fail("'{}' is corrupt: num_joints {} but its skeleton has {}", meta_file.string(), num_joints,
          out.skeleton.num_joints());
-  out.model = VqTokenizer(vq_tokenizer_options(out.cfg, num_joints));
+  out.model = VqTokenizer(vq_tokenizer_options(out.cfg, out.skeleton));
   try {
     torch::serialize::InputArchive ar;
     ar.load_from(final_pt.string());

@@ -1,12 +1,18 @@
 // The VQ motion tokenizer (MoMask-style, reference-facts §6): conv encoder ->
-// EMA codebook quantiser -> conv decoder over normalised joints [B, T, J*3], plus
-// the soft decode and codebook metric the TMD prior and AnchorRoute build on.
+// EMA codebook quantiser -> conv decoder, over either normalised absolute joints
+// [B, T, J*3] or HumanML3D-style translation-invariant features (root velocity in
+// the heading frame, root height, root-relative joints) from which world joints
+// are recovered by integration; plus the soft decode and codebook metric the TMD
+// prior and AnchorRoute build on. Whatever the representation, encode() reads and
+// decode()/soft_decode()/decode_embeddings() return normalised absolute joints, so
+// the anchor losses and RouteSolver's residuals stay in world metres.
 #pragma once
 #include <string>
 
 #include <torch/torch.h>
 
 #include "core/config.h"
+#include "data/features.h"
 #include "data/motion_set.h"
 #include "data/skeleton.h"
 #include "models/conv_motion.h"
@@ -54,13 +60,29 @@ TORCH_MODULE(EmaQuantizer);
 
 // ---------------------------------------------------------------- tokenizer
 
-struct VqTokenizerOptions {
-  ConvMotionOptions conv;  // conv.latent must equal quant.code_dim
-  EmaQuantizerOptions quant;
+// The representation the conv encoder reads and the decoder writes.
+struct VqRepresentation {
+  std::string type = "absolute_joints";  // or "invariant"
+  std::string layout = "inv67";          // invariant: feature layout (features.h), "inv67" or "inv67+vel+contact"
+  FeatureOptions features;
+  bool invariant() const { return type == "invariant"; }
 };
 
+struct VqTokenizerOptions {
+  ConvMotionOptions conv;  // conv.latent must equal quant.code_dim; conv.in_dim = J*3 or the feature size
+  EmaQuantizerOptions quant;
+  VqRepresentation representation;
+  int num_joints = 0;      // 0 = conv.in_dim / 3 (absolute joints)
+  Skeleton skeleton;       // invariant: needed to compute features in encode() (facing, feet)
+};
+
+// Differentiable recovery of world joints from denormalised invariant features
+// f [..., T, F] (F >= 4 + 3(J-1)): heading and root xz integrated from frame -1 =
+// (origin, heading 0) by cumulative sums (features.h, invariant_features). -> [..., T, J, 3].
+torch::Tensor recover_world_from_invariant(const torch::Tensor& f, int64_t num_joints);
+
 struct VqOutput {
-  torch::Tensor recon;  // [B, T, J*3] normalised
+  torch::Tensor recon;  // [B, T, C] in the model representation (normalised joints or normalised features)
   torch::Tensor ids;    // [B, T / stride]
   torch::Tensor commit_loss, perplexity, resets;  // scalars (see QuantizerOutput)
 };
@@ -68,16 +90,28 @@ struct VqOutput {
 struct VqTokenizerImpl : torch::nn::Module {
   explicit VqTokenizerImpl(const VqTokenizerOptions& o);
 
-  // x [B, T, J*3] normalised, T a multiple of stride(); mask [B, T] bool (undefined
-  // = all valid). Padded frames are zeroed (the dataset's padding value) so the
-  // tokens of a clip do not depend on what its padding held.
+  // x [B, T, C] in the model representation (model_input), T a multiple of stride();
+  // mask [B, T] bool (undefined = all valid). Padded frames are zeroed (the dataset's
+  // padding value) so the tokens of a clip do not depend on what its padding held.
   VqOutput forward(const torch::Tensor& x, const torch::Tensor& mask = {});
-  torch::Tensor encode(const torch::Tensor& x, const torch::Tensor& mask = {});  // -> ids [B, T / stride] int64
-  torch::Tensor decode(const torch::Tensor& ids);                                // [B, L] -> [B, L * stride, J*3]
+  // x [B, T, J*3] normalised absolute joints (clips start at frame 0, padded at the
+  // end) -> ids [B, T / stride] int64. Invariant: features of each clip's valid frames.
+  torch::Tensor encode(const torch::Tensor& x, const torch::Tensor& mask = {});
+  // The following return normalised absolute joints [B, L * stride, J*3] (invariant:
+  // integrated from frame -1 = origin, heading 0, as the dataset's canonical clips start).
+  torch::Tensor decode(const torch::Tensor& ids);  // [B, L]
   // Decoder on continuous code vectors u [B, L, D] (RouteSolver's soft-token variable).
   torch::Tensor decode_embeddings(const torch::Tensor& u);
   // decoder(probs @ codebook) for probs [B, L, K]: differentiable in probs.
   torch::Tensor soft_decode(const torch::Tensor& probs);
+
+  // Normalised absolute joints [B, T, J*3] -> the model representation [B, T, C]
+  // (absolute: masked copy; invariant: normalised features, zero on padding).
+  torch::Tensor model_input(const torch::Tensor& x, const torch::Tensor& mask = {}) const;
+  // Decoder output [B, T, C] -> normalised absolute joints [B, T, J*3] (differentiable).
+  torch::Tensor model_output_to_joints(const torch::Tensor& y) const;
+  bool invariant() const { return options.representation.invariant(); }
+  int64_t input_dim() const { return options.conv.in_dim; }
 
   torch::Tensor codebook() const { return quantizer->codebook; }  // [K, D]
   torch::Tensor normalized_codebook() const;                       // rows scaled to unit L2 norm
@@ -86,7 +120,7 @@ struct VqTokenizerImpl : torch::nn::Module {
   int64_t codebook_size() const { return options.quant.codebook_size; }
   int64_t code_dim() const { return options.quant.code_dim; }
   int64_t stride() const { return int64_t{1} << options.conv.down_stages; }  // frames per token
-  int64_t num_joints() const { return options.conv.in_dim / 3; }
+  int64_t num_joints() const { return options.num_joints > 0 ? options.num_joints : options.conv.in_dim / 3; }
 
   // World joints [..., 3] <-> the normalised space the tokenizer was trained in.
   torch::Tensor normalize(const torch::Tensor& world) const;
@@ -97,10 +131,51 @@ struct VqTokenizerImpl : torch::nn::Module {
   EmaQuantizer quantizer{nullptr};
   ConvMotionDecoder decoder{nullptr};
   torch::Tensor joint_mean, joint_std;  // (3,) buffers: the training data's per-axis stats
+  // Invariant only (absent from absolute tokenizers' checkpoints): per-dimension
+  // feature stats of the train split (compute_norm_stats with the layout).
+  torch::Tensor feature_mean, feature_std;  // (C,) buffers
 };
 TORCH_MODULE(VqTokenizer);
 
 // ---------------------------------------------------------------- config
+
+// `model.representation`: absent from the dump when absolute (so tokenizers trained
+// before it keep their config hash).
+struct VqRepresentationConfig : Config {
+  std::string type = "absolute_joints";
+  std::string layout = "inv67";
+  double facing_smooth_sigma = 20.0;
+  double world_weight = 0.0;
+  double root_weight = 1.0;
+  void visit(FieldVisitor& v) override {
+    v("type", type,
+      "absolute_joints: per-axis normalised world joints (ACMDM); invariant: HumanML3D-style root heading change, "
+      "root xz velocity in the heading frame, root height, root-relative joints; world joints recovered by "
+      "integration in every decode",
+      one_of({"absolute_joints", "invariant"}));
+    v("layout", layout, "invariant feature layout: inv67, or inv67+vel+contact (local velocities and foot contacts "
+      "as auxiliary targets)", one_of({"inv67", "inv67+vel+contact"}));
+    v("facing_smooth_sigma", facing_smooth_sigma, "Gaussian std (frames) smoothing the heading (HumanML3D: 20)",
+      at_least(0.0));
+    v("world_weight", world_weight,
+      "invariant: weight of the reconstruction loss on joints recovered by integration over the training window "
+      "(in joint-std units; penalises root drift)",
+      at_least(0.0));
+    v("root_weight", root_weight,
+      "invariant: weight of the 4 root channels (heading change, xz velocity, height) in the feature losses, "
+      "relative to each other channel's 1 (their errors integrate into the trajectory)",
+      at_least(0.0));
+  }
+  bool omitted_from_dump() const override {
+    return type == "absolute_joints" && layout == "inv67" && facing_smooth_sigma == 20.0 && world_weight == 0.0 &&
+           root_weight == 1.0;
+  }
+  std::string validate() const override {
+    if (type == "absolute_joints" && !omitted_from_dump())
+      return "layout, facing_smooth_sigma, world_weight and root_weight apply to representation.type invariant only";
+    return "";
+  }
+};
 
 // `model:` section of a tokenizer run (model.type = vq_tokenizer).
 struct VqTokenizerConfig : Config {
@@ -115,6 +190,7 @@ struct VqTokenizerConfig : Config {
   double reset_threshold = 1.0;
   std::string recon_loss = "smooth_l1";
   double velocity_weight = 0.5;
+  VqRepresentationConfig representation;
   void visit(FieldVisitor& v) override {
     v("width", width, "conv channels", at_least(8));
     v("code_dim", code_dim, "codebook vector size D", at_least(1));
@@ -129,10 +205,13 @@ struct VqTokenizerConfig : Config {
     v("recon_loss", recon_loss, "reconstruction loss on normalised joints: smooth_l1 or mse",
       one_of({"smooth_l1", "mse"}));
     v("velocity_weight", velocity_weight, "weight of the frame-difference reconstruction loss", at_least(0.0));
+    v("representation", representation, "what the tokenizer reads and writes (absolute_joints by default)");
   }
 };
 
-VqTokenizerOptions vq_tokenizer_options(const VqTokenizerConfig& c, int num_joints);
+// Absolute joints need only the joint count; the invariant representation needs the
+// skeleton (facing and feet roles) and its feature size.
+VqTokenizerOptions vq_tokenizer_options(const VqTokenizerConfig& c, const Skeleton& skeleton);
 
 // ---------------------------------------------------------------- loading
 

@@ -71,7 +71,11 @@ TokenPrior TokenPrior::load(const std::string& run_dir, torch::Device device) {
   (*p.net_)->to(device);
   (*p.net_)->eval();
   // The codes the prior learned are only meaningful with the codebook it was trained on.
-  auto d_now = p.tok_.model->token_distance_table().to(device);
+  torch::Tensor d_now;
+  if (auto* t = dynamic_cast<const TmdPriorConfig*>(p.cfg_.get()))
+    d_now = tmd_path_table(p.tok_.model->codebook(), t->path, t->beta_c, t->beta_a).dist.to(device);
+  else
+    d_now = p.tok_.model->token_distance_table().to(device);
   if (!torch::allclose((*p.net_)->distance, d_now, 1e-4, 1e-4))
     fail("the tokenizer '{}' no longer has the codebook token prior '{}' was trained with (distance tables differ); "
          "retrain the prior on this tokenizer",

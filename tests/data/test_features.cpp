@@ -336,3 +336,46 @@ TEST_CASE("mc67 on the real HumanML3D clip matches its rotation-invariant parts"
     for (int k = 0; k < 4; ++k) mismatches += c[t * 4 + k] != vecs[t * 263 + 259 + k];
   CHECK(mismatches == 0);
 }
+
+TEST_CASE("inv67: exact round trip in the clip's own world frame, whatever its start", "[data][features][invariant]") {
+  const int T = 57;
+  const auto clip = wandering_clip(T, 4);  // starts away from the origin, facing 0.4 rad
+  for (const std::string layout : {"inv67", "inv67+vel+contact"}) {
+    for (const FeatureOptions& opt : {FeatureOptions{}, unsmoothed()}) {
+      INFO(layout);
+      auto f = compute_features(layout, clip.data(), T, skel(), opt);
+      REQUIRE(feature_frames(layout, T) == T);
+      REQUIRE(f.size() == static_cast<size_t>(T) * feature_dim(layout, skel()));
+      auto rec = recover_joints_from_invariant(f.data(), T, 22, feature_dim(layout, skel()));
+      CHECK(max_abs_diff(rec, clip) < 1e-4);
+    }
+  }
+  CHECK(feature_dim("inv67", skel()) == 67);
+  CHECK(feature_dim("inv67+vel+contact", skel()) == 137);
+}
+
+TEST_CASE("inv67: rows after the first are invariant to rotating and moving the clip", "[data][features][invariant]") {
+  const int T = 60;
+  const auto clip = wandering_clip(T);
+  const double angle = GENERATE(0.5, -1.9, kPi);
+  const auto moved = transformed(clip, angle, 4.0, -2.5);
+  for (const std::string layout : {"inv67", "inv67+vel+contact"}) {
+    INFO(layout << " rotated by " << angle);
+    const int D = feature_dim(layout, skel());
+    auto a = compute_features(layout, clip.data(), T, skel());
+    auto b = compute_features(layout, moved.data(), T, skel());
+    // Row 0 is the step from the canonical frame -1 (it holds the world pose of frame 0).
+    std::vector<float> a1(a.begin() + D, a.end()), b1(b.begin() + D, b.end());
+    CHECK(max_abs_diff(a1, b1) < 1e-4);
+    // A crop's rows are the whole clip's rows: features of frames 10.. equal rows 10.. of the clip's.
+    auto tail = compute_features(layout, clip.data() + 10 * 22 * 3, T - 10, skel(), unsmoothed());
+    auto whole = compute_features(layout, clip.data(), T, skel(), unsmoothed());
+    std::vector<float> t1(tail.begin() + D, tail.end()), w1(whole.begin() + 11 * D, whole.end());
+    CHECK(max_abs_diff(t1, w1) < 1e-4);
+  }
+  // mc67 and inv67 hold the same root height and local positions.
+  auto mc = compute_features("mc67", clip.data(), T, skel());
+  auto inv = compute_features("inv67", clip.data(), T, skel());
+  for (int t = 0; t + 1 < T; ++t)
+    for (int d = 3; d < 67; ++d) REQUIRE(mc[t * 67 + d] == Approx(inv[t * 67 + d]).margin(1e-6));
+}

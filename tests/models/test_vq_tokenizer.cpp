@@ -7,6 +7,7 @@
 #include <sstream>
 
 #include "core/error.h"
+#include "data/features.h"
 #include "models/vq_tokenizer.h"
 #include "test_util.h"
 #include "train/motion_dataset.h"
@@ -322,4 +323,144 @@ TEST_CASE("tokenizer training resumes exactly: codebook buffers and reset draws 
   CHECK(strip_wall(ma) == strip_wall(mb));
   CHECK(ra.summary.at("test_mpjpe_m") == rb.summary.at("test_mpjpe_m"));
   CHECK(ra.summary.at("test_perplexity") == rb.summary.at("test_perplexity"));
+}
+
+// ---------------------------------------------------------------- invariant representation
+
+namespace {
+
+// A turning, travelling clip of the HumanML3D skeleton's rest pose [T, 22, 3] (starts
+// off the origin and facing 0.3 rad, so frame -1's canonical frame matters).
+torch::Tensor wandering_world(int T, double phase = 0.0) {
+  const Skeleton& sk = humanml3d_skeleton();
+  auto rest = sk.rest_pose();
+  auto out = torch::zeros({T, 22, 3});
+  auto a = out.accessor<float, 3>();
+  double x = 0.2, z = -0.1;
+  for (int t = 0; t < T; ++t) {
+    const double h = 0.3 + 0.8 * std::sin(0.06 * t + phase);
+    x += 0.04 * std::sin(h);
+    z += 0.04 * std::cos(h);
+    for (int j = 0; j < 22; ++j) {
+      const double rx = std::cos(h) * rest[j].x() + std::sin(h) * rest[j].z();
+      const double rz = -std::sin(h) * rest[j].x() + std::cos(h) * rest[j].z();
+      a[t][j][0] = static_cast<float>(rx + x);
+      a[t][j][1] = static_cast<float>(rest[j].y() + 0.9 + 0.02 * std::sin(0.4 * t + j));
+      a[t][j][2] = static_cast<float>(rz + z);
+    }
+  }
+  return out;
+}
+
+VqTokenizerOptions invariant_options(const std::string& layout = "inv67") {
+  VqTokenizerOptions o = tiny_options();
+  o.representation.type = "invariant";
+  o.representation.layout = layout;
+  o.num_joints = 22;
+  o.skeleton = humanml3d_skeleton();
+  o.conv.in_dim = feature_dim(layout, o.skeleton);
+  return o;
+}
+
+}  // namespace
+
+TEST_CASE("invariant recovery in torch equals the CPU recovery and inverts the features", "[tokenizer][invariant]") {
+  const int T = 40;
+  auto w = wandering_world(T).contiguous();
+  for (const std::string layout : {"inv67", "inv67+vel+contact"}) {
+    const int F = feature_dim(layout, humanml3d_skeleton());
+    auto f = compute_features(layout, w.data_ptr<float>(), T, humanml3d_skeleton());
+    auto ft = torch::from_blob(f.data(), {1, T, F}, torch::kFloat32).to(torch::kFloat64);
+    auto rec = recover_world_from_invariant(ft, 22).to(torch::kFloat32)[0];
+    CHECK((rec - w).abs().max().item<double>() < 1e-4);
+    auto cpu = recover_joints_from_invariant(f.data(), T, 22, F);
+    CHECK(torch::allclose(rec, torch::from_blob(cpu.data(), {T, 22, 3}), 1e-4, 1e-4));
+  }
+}
+
+TEST_CASE("invariant tokenizer: world joints in and out, padding ignored, soft decode differentiable",
+          "[tokenizer][invariant]") {
+  torch::manual_seed(4);
+  VqTokenizer vq(invariant_options());
+  CHECK(vq->invariant());
+  CHECK(vq->num_joints() == 22);
+  CHECK(vq->input_dim() == 67);
+  {
+    auto wrong = invariant_options();
+    wrong.conv.in_dim = 66;
+    CHECK_THROWS_AS(VqTokenizer(wrong), UserError);
+  }
+  {
+    torch::NoGradGuard ng;
+    vq->joint_mean.copy_(torch::tensor({0.1f, 0.9f, 0.3f}));
+    vq->joint_std.copy_(torch::tensor({0.8f, 0.5f, 1.1f}));
+    vq->feature_mean.normal_(0, 0.01);
+    vq->feature_std.uniform_(0.5, 1.5);
+  }
+  vq->eval();
+  // model_input -> model_output_to_joints is the identity on a clip (exact recovery).
+  auto w = torch::stack({wandering_world(32), wandering_world(32, 1.0)});  // [2, 32, 22, 3]
+  auto x = vq->normalize(w).flatten(2);
+  auto feats = vq->model_input(x);
+  CHECK(feats.sizes() == torch::IntArrayRef({2, 32, 67}));
+  CHECK(torch::allclose(vq->model_output_to_joints(feats), x, 1e-4, 1e-4));
+  // Padding is ignored: the tokens of a clip's valid frames do not depend on what follows.
+  auto mask = torch::ones({2, 32}, torch::kBool);
+  mask[1].narrow(0, 20, 12).fill_(false);
+  auto garbage = x.clone();
+  garbage[1].narrow(0, 20, 12).normal_();
+  CHECK(torch::equal(vq->encode(x, mask), vq->encode(garbage, mask)));
+  CHECK(torch::equal(vq->model_input(x, mask)[1].narrow(0, 20, 12), torch::zeros({12, 67})));
+  // decode / soft_decode / decode_embeddings all return normalised joints [B, T, 66].
+  auto ids = vq->encode(x);
+  CHECK(ids.sizes() == torch::IntArrayRef({2, 8}));
+  auto hard = vq->decode(ids);
+  CHECK(hard.sizes() == torch::IntArrayRef({2, 32, 66}));
+  auto soft = vq->soft_decode(torch::one_hot(ids, vq->codebook_size()).to(torch::kFloat32));
+  CHECK(torch::allclose(hard, soft, 1e-4, 1e-5));
+  CHECK(torch::allclose(vq->decode_embeddings(vq->codebook().index_select(0, ids.view(-1)).view({2, 8, 8})), hard,
+                        1e-4, 1e-5));
+  auto logits = torch::randn({1, 4, 16}, torch::requires_grad());
+  vq->denormalize(vq->soft_decode(torch::softmax(logits, -1)).view({1, 16, 22, 3})).select(2, 0).sum().backward();
+  REQUIRE(logits.grad().defined());
+  CHECK(logits.grad().abs().sum().item<double>() > 0);
+}
+
+TEST_CASE("the absolute tokenizer configs keep their hash; standard ones read invariant features",
+          "[tokenizer][invariant]") {
+  auto tiny = load_job<TrainJobConfig>("configs/tokenizer/vq_tiny.yaml", {});
+  CHECK(dump_config(tiny).find("representation") == std::string::npos);
+  auto standard = load_job<TrainJobConfig>("configs/tokenizer/vq_standard.yaml", {});
+  CHECK(standard.model.as<VqTokenizerConfig>().representation.type == "invariant");
+  CHECK(dump_config(standard).find("representation") != std::string::npos);
+  CHECK_THROWS_AS(load_job<TrainJobConfig>("configs/tokenizer/vq_tiny.yaml", {"model.representation.world_weight=1"}),
+                  UserError);
+}
+
+TEST_CASE("invariant vq_tiny trains, reports the oracle control error and loads back", "[tokenizer][invariant][slow]") {
+  TempDir t("vqinv");
+  std::string data = (t.path / "fx.h5").string();
+  REQUIRE(run_motionctl(fmt::format("fixture configs/data/smoke.yaml output={} fixture.num_clips=60", data)).exit_code ==
+          0);
+  auto r = run_motionctl(fmt::format(
+      "train configs/tokenizer/vq_tiny.yaml data.path={} run.root={} run.threads=1 run.name=inv optim.steps=60 "
+      "model.representation.type=invariant model.representation.world_weight=0.5",
+      data, t.path.string()));
+  INFO(r.output);
+  REQUIRE(r.exit_code == 0);
+  fs::path run = t.path / "tokenizer" / "inv";
+  auto s = read_summary(run / "summary.csv");
+  for (auto k : {"test_mpjpe_m", "val_oracle_root_3d_m", "val_oracle_planar_root_m", "val_oracle_body_point_m",
+                 "val_oracle_control_error_m"})
+    REQUIRE(s.count(k));
+  CHECK(s["test_mpjpe_m"] < s["test_mean_pose_mpjpe_m"]);
+  auto tok = load_vq_tokenizer(run.string());
+  CHECK(tok.model->invariant());
+  CHECK(tok.model->feature_mean.size(0) == 67);
+  auto ds = MotionDataset::load(data);
+  torch::NoGradGuard ng;
+  auto b = ds->batch(ds->split("test"), 0, 4, torch::kCPU);
+  auto y = tok.model->decode(tok.model->encode(b.joints.flatten(2), b.mask));
+  CHECK(y.sizes() == b.joints.flatten(2).sizes());
+  CHECK(torch::isfinite(y).all().item<bool>());
 }

@@ -221,3 +221,81 @@ TEST_CASE("token prior configs parse, with the paper's beta and the right model 
   auto bad = user_error_of([] { load_job<TrainJobConfig>("configs/tmd/tmd_tiny.yaml", {"model.heads=3"}); });
   CHECK(bad.find("heads") != std::string::npos);
 }
+
+// ---------------------------------------------------------------- path calibration (issue 15)
+
+namespace {
+
+// Codes sharing one direction (what an EMA codebook over non-centred features looks
+// like): mean m plus small per-code noise, in `clusters` tight groups.
+torch::Tensor clustered_codebook(int64_t K, int64_t D, int64_t clusters, uint64_t seed) {
+  torch::manual_seed(seed);
+  auto m = torch::randn({1, D});
+  auto centres = m + 0.2 * torch::randn({clusters, D});
+  auto which = torch::arange(K) % clusters;
+  return centres.index_select(0, which) + 0.03 * torch::randn({K, D});
+}
+
+}  // namespace
+
+TEST_CASE("TMD path: the paper's table is eq. (17) on the raw codes; stats match eq. (18)", "[tmd][calibration]") {
+  auto cb = clustered_codebook(64, 16, 8, 1);
+  auto paper = tmd_path_table(cb, TmdPathConfig{}, 3.0, 0.9);
+  CHECK(paper.scale == 1.0);
+  auto n = torch::nn::functional::normalize(cb.to(torch::kFloat64), torch::nn::functional::NormalizeFuncOptions().dim(1));
+  auto d = (2.0 - 2.0 * torch::matmul(n, n.t()).clamp(-1.0, 1.0)).pow(2);
+  d.fill_diagonal_(0.0);
+  CHECK(torch::allclose(paper.dist.to(torch::kFloat64), d, 1e-5, 1e-6));
+  for (double t : {0.1, 0.5, 0.9}) {
+    auto st = tmd_path_stats(paper.dist, t, 3.0, 0.9);
+    auto beta = tmd_beta(torch::tensor(t, torch::kFloat64), 3.0, 0.9);
+    auto q = tmd_path_probs(paper.dist.to(torch::kFloat64), torch::arange(64), beta.expand({64}));  // [64, 64]
+    CHECK(st.q_self == Approx(q.diagonal().mean().item<double>()).epsilon(1e-6));
+    auto h = -(q * q.clamp_min(1e-300).log()).sum(1);
+    CHECK(st.effective_codes == Approx(h.exp().mean().item<double>()).epsilon(1e-6));
+  }
+  // Uniform at t = 0: every code equally likely.
+  CHECK(tmd_path_stats(paper.dist, 0.0, 3.0, 0.9).effective_codes == Approx(64.0).epsilon(1e-9));
+}
+
+TEST_CASE("TMD path calibration reaches q_0.9(x1|x1) >= 0.5 on random and clustered codebooks", "[tmd][calibration]") {
+  for (uint64_t seed : {1, 2}) {
+    auto clustered = clustered_codebook(256, 64, 16, seed);
+    torch::manual_seed(seed);
+    auto random = torch::randn({256, 64});
+    for (auto* cb : {&clustered, &random}) {
+      for (const char* metric : {"cosine", "centered_cosine", "whitened_cosine"}) {
+        TmdPathConfig p;
+        p.metric = metric;
+        p.calibration = "q_target";
+        auto cal = tmd_path_table(*cb, p, 3.0, 0.9);
+        INFO(metric << " seed " << seed << " scale " << cal.scale);
+        CHECK(cal.scale >= 1.0);
+        auto st = tmd_path_stats(cal.dist, 0.9, 3.0, 0.9);
+        CHECK(st.q_self >= 0.5 - 1e-6);
+        // Monotone in t, and still uniform at t = 0.
+        CHECK(tmd_path_stats(cal.dist, 0.5, 3.0, 0.9).q_self <= st.q_self + 1e-12);
+        CHECK(tmd_path_stats(cal.dist, 0.0, 3.0, 0.9).q_self == Approx(1.0 / 256).epsilon(1e-9));
+        // Only the scale changes the table for a given metric (s = 1: the metric's own table).
+        TmdPathConfig plain = p;
+        plain.calibration = "none";
+        CHECK(torch::allclose(cal.dist, tmd_path_table(*cb, plain, 3.0, 0.9).dist * cal.scale, 1e-4, 1e-5));
+      }
+    }
+    // The paper's path does not concentrate on the clustered codebook; calibration does.
+    auto paper = tmd_path_stats(tmd_path_table(clustered, TmdPathConfig{}, 3.0, 0.9).dist, 0.9, 3.0, 0.9);
+    CHECK(paper.q_self < 0.5);
+  }
+}
+
+TEST_CASE("TMD path configs: tiny keeps the paper's path (and hash), standard calibrates", "[tmd][calibration]") {
+  auto tiny = load_job<TrainJobConfig>("configs/tmd/tmd_tiny.yaml", {});
+  CHECK(dump_config(tiny).find("calibration") == std::string::npos);
+  CHECK(tiny.model.as<TmdPriorConfig>().path.calibration == "none");
+  auto standard = load_job<TrainJobConfig>("configs/tmd/tmd_standard.yaml", {});
+  const auto& p = standard.model.as<TmdPriorConfig>().path;
+  CHECK(p.calibration == "q_target");
+  CHECK(p.target_q == 0.5);
+  CHECK(p.target_t == 0.9);
+  CHECK(standard.model.as<TmdPriorConfig>().beta_c == 3.0);
+}
