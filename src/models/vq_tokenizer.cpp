@@ -239,6 +239,8 @@ class VqTokenizerTrainer : public Trainable {
     return lo;
   }
 
+  std::vector<std::string> evaluation_splits() const override { return {"test"}; }
+
   // Whole test clips: reconstruction MPJPE (metres, plain and root-aligned), the
   // mean-training-pose baseline, code perplexity and codes unused on the split.
   std::map<std::string, double> evaluate() override {
