@@ -30,7 +30,9 @@ struct RunConfig : Config {
   void visit(FieldVisitor& v) override {
     v("experiment", experiment, "experiment folder under root");
     v("name", name, "run name (default: <config stem>-<config hash>)");
-    v("root", root, "directory holding all runs");
+    v("root", root,
+      "directory holding all runs, relative to the working directory; also where the components this job trains go; "
+      "not part of a run's identity (a moved run tree is found under its new root)");
     v("seed", seed, "random seed of the run (stored in the run directory)");
     v("threads", threads, "torch CPU threads; 0 = all cores (or $OMP_NUM_THREADS when set)", at_least(0));
     v("device", device, "torch device: cpu, cuda, cuda:N",
@@ -39,7 +41,7 @@ struct RunConfig : Config {
                                                                          : std::string("must be cpu, cuda or cuda:N");
                           },
                           "cpu|cuda|cuda:N"});
-    v("force", force, "redo a finished run from scratch");
+    v("force", force, "redo the run from scratch in its own directory (refused while another process uses it)");
     v("log_every", log_every, "steps between log lines and metrics.csv rows", at_least(1));
     v("checkpoint_every", checkpoint_every, "steps between checkpoints", at_least(1));
   }
