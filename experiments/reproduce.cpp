@@ -89,6 +89,8 @@ ReproduceResult reproduce(const ReproduceOptions& opt) {
   res.results_dir = out_dir.string();
   const std::string commit = git_commit();
 
+  // Row runs and every component the rows train live under profile.runs_root.
+  RunsRootScope components_root(pf.profile.runs_root);
   take_trained_runs();
   RowEvaluator ev(pf.profile);
   const std::vector<std::string> evaluator_runs = take_trained_runs();  // its training curve goes in results.h5

@@ -42,6 +42,7 @@ EvalJobResult run_eval_job(EvalJobConfig& job, const std::vector<std::string>& o
   // Everything the result depends on, by content: the run is keyed by the SHA-1 of the
   // inputs' bytes, so a file regenerated at the same path is a new evaluation, never a
   // stale cached one. The evaluator is trained (or found) first for its checkpoint.
+  RunsRootScope components_root(job.run.root);  // the evaluator it trains lives under run.root too
   TrainResult ev_run = run_train(resolve_data_path(job.eval.evaluator), {});
   std::string ref_path = resolve_data_path(job.eval.reference);
   std::string motions_path = job.eval.motions.empty() ? ref_path : resolve_data_path(job.eval.motions);
@@ -54,7 +55,7 @@ EvalJobResult run_eval_job(EvalJobConfig& job, const std::vector<std::string>& o
   if (!constraints_path.empty()) inputs.emplace_back("constraints", constraints_path);
   if (!src_path.empty()) inputs.emplace_back("source", src_path);
   std::map<std::string, std::string> attrs = {{"split", job.eval.split}, {"evaluator_run", ev_run.run_dir.string()}};
-  std::string identity = dump_config(job) + "# inputs by content (SHA-1 of the bytes), part of this run's identity:\n";
+  std::string identity = identity_yaml(job) + "# inputs by content (SHA-1 of the bytes), part of this run's identity:\n";
   for (auto& [role, path] : inputs) {
     if (!fs::exists(path))
       fail("{}: eval.{} '{}' does not exist", stem, role == "evaluator_checkpoint" ? "evaluator" : role, path);
@@ -64,7 +65,7 @@ EvalJobResult run_eval_job(EvalJobConfig& job, const std::vector<std::string>& o
     attrs[role + "_sha1"] = sha;
   }
   RunDir run = RunDir::open(job.run, identity, overrides,
-                            fmt::format("{}-{}-{}", stem, config_hash(job), c10::sha1(identity).str().substr(0, 8)));
+                            fmt::format("{}-{}-{}", stem, identity_hash(job), c10::sha1(identity).str().substr(0, 8)));
   res.run_dir = run.path().string();
   if (run.finished()) {  // a finished evaluation of the same bytes is a no-op: report what it found
     for (auto& [k, v] : run.summary()) {

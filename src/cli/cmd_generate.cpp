@@ -8,6 +8,7 @@
 #include <optional>
 
 #include "cli/commands.h"
+#include "train/train_job.h"
 #include "cli/generate_job.h"
 #include "control/control_task.h"
 #include "control/linear_observation.h"
@@ -72,6 +73,7 @@ void apply_custom(const GenerateCustomConfig& c, const std::string& file, int nu
 
 void run_generate(const std::string& file, const std::vector<std::string>& overrides) {
   auto job = load_job<GenerateJobConfig>(file, overrides);
+  RunsRootScope components_root(job.run.root);  // what the generator trains lives under run.root
   std::string data_path = resolve_data_path(job.data.path);
   if (!fs::exists(data_path)) {
     if (job.data.fixture.empty()) fail("{}: data.path '{}' does not exist", file, job.data.path);

@@ -108,7 +108,12 @@ void add_sweep_command(CLI::App& app) {
         }
       combos = next;
     }
-    auto base = load_job<TrainJobConfig>(a->file, {});
+    // The settings every run shares (single-valued arguments, run.root among
+    // them) decide where the summary goes.
+    std::vector<std::string> shared;
+    for (size_t k = 0; k < axes.size(); ++k)
+      if (axes[k].second.size() == 1) shared.push_back(axes[k].first + "=" + axes[k].second.front());
+    auto base = load_job<TrainJobConfig>(a->file, shared);
     std::vector<std::map<std::string, double>> rows;
     std::set<std::string> metric_names;
     for (size_t i = 0; i < combos.size(); ++i) {

@@ -1,11 +1,14 @@
 // motionctl: the command-line entry point. Subcommands are thin: parse, call, print.
-// Exit codes: 0 ok, 2 bad input (config, files, values), 1 internal error.
+// Exit codes: 0 ok, 2 bad input (config, files, values; also a run directory in
+// use or a diverged training), 1 internal error, 128 + signal when SIGINT/SIGTERM
+// stopped a training after writing its checkpoint (130 for Ctrl-C).
 #include <CLI/CLI.hpp>
 #include <cstdlib>
 #include <iostream>
 
 #include "cli/commands.h"
 #include "core/error.h"
+#include "core/interrupt.h"
 
 int main(int argc, char** argv) {
   // OpenMP threads spin while waiting by default; when the cores are shared
@@ -33,6 +36,9 @@ int main(int argc, char** argv) {
   } catch (const mc::UserError& e) {
     std::cerr << "motionctl: error: " << e.what() << "\n";
     return mc::kExitUserError;
+  } catch (const mc::Interrupted& e) {
+    std::cerr << "motionctl: " << e.what() << "\n";
+    return 128 + e.signal;
   } catch (const c10::Error& e) {
     std::cerr << "motionctl: internal torch error: " << e.what_without_backtrace() << "\n";
     return 1;

@@ -1,7 +1,13 @@
-// Run directory lifecycle (create, resume, finish, force) and log/metrics files.
+// Run directory lifecycle (lock, create, resume, finish, force) and log/metrics files.
 #include "core/run_dir.h"
 
+#include <fcntl.h>
+#include <sys/file.h>
 #include <unistd.h>
+
+#include <cerrno>
+#include <cstring>
+#include <mutex>
 
 #include <cstdlib>
 #include <ctime>
@@ -95,32 +101,114 @@ std::string utc_timestamp() {
   return buf;
 }
 
+// ---------------------------------------------------------------- lock
+
+namespace {
+
+// Locks this process holds, by directory: a nested open of a run it already
+// holds shares the lock (flock on a second descriptor would refuse ourselves).
+std::map<std::string, std::weak_ptr<RunLock>>& held_locks() {
+  static std::map<std::string, std::weak_ptr<RunLock>> m;
+  return m;
+}
+std::mutex& held_mutex() {
+  static std::mutex m;
+  return m;
+}
+
+// Files an AtomicOutput writes before its rename: .<name>.tmp.<pid>.<n>.
+bool is_atomic_temp(const fs::path& p) {
+  const std::string f = p.filename().string();
+  return f.size() > 1 && f[0] == '.' && f.find(".tmp.") != std::string::npos;
+}
+
+}  // namespace
+
+std::shared_ptr<RunLock> RunLock::acquire(const fs::path& run_dir) {
+  std::error_code ec;
+  fs::create_directories(run_dir, ec);
+  if (ec) fail("cannot create run directory '{}': {}", run_dir.string(), ec.message());
+  const std::string key = fs::weakly_canonical(run_dir).string();
+  std::lock_guard<std::mutex> g(held_mutex());
+  if (auto held = held_locks()[key].lock()) return held;
+  const fs::path file = run_dir / ".lock";
+  int fd = ::open(file.c_str(), O_RDWR | O_CREAT | O_CLOEXEC, 0644);
+  if (fd < 0) fail("cannot open the lock file '{}': {}", file.string(), std::strerror(errno));
+  if (::flock(fd, LOCK_EX | LOCK_NB) != 0) {
+    const int err = errno;
+    ::close(fd);
+    if (err != EWOULDBLOCK)
+      fail("cannot lock '{}': {} (run directories need a filesystem with flock)", file.string(), std::strerror(err));
+    std::string holder;
+    try {
+      holder = read_file(file);
+    } catch (const UserError&) {
+    }
+    while (!holder.empty() && (holder.back() == '\n' || holder.back() == ' ')) holder.pop_back();
+    fail("run directory '{}' is in use by another motionctl process (pid {}); wait for it to finish or stop it "
+         "(kill {}), or pick another run.name / run.root. run.force=true does not take over a run in use",
+         run_dir.string(), holder.empty() ? "unknown" : holder, holder.empty() ? "<pid>" : holder);
+  }
+  // Ours now; whatever the file held came from a process that is gone (the kernel
+  // drops a flock when its holder exits), so it is overwritten.
+  const std::string pid = fmt::format("{}\n", ::getpid());
+  if (::ftruncate(fd, 0) != 0 || ::pwrite(fd, pid.data(), pid.size(), 0) != static_cast<ssize_t>(pid.size())) {
+    // The pid is for messages only; the lock itself holds.
+  }
+  std::shared_ptr<RunLock> lock(new RunLock(run_dir, fd));
+  held_locks()[key] = lock;
+  return lock;
+}
+
+RunLock::~RunLock() {
+  if (fd_ >= 0) {
+    // Leave the file (removing it would race with a process opening it); an
+    // empty file says nobody holds it.
+    if (::ftruncate(fd_, 0) != 0) {
+    }
+    ::flock(fd_, LOCK_UN);
+    ::close(fd_);
+  }
+}
+
+// ---------------------------------------------------------------- run directory
+
+fs::path RunDir::path_of(const RunConfig& run, const std::string& default_name) {
+  return fs::path(run.root) / sanitize_name(run.experiment) / sanitize_name(run.name.empty() ? default_name : run.name);
+}
+
 RunDir RunDir::open(const RunConfig& run, const std::string& resolved_yaml, const std::vector<std::string>& overrides,
-                    const std::string& default_name) {
+                    const std::string& default_name, const SameRun& same) {
   RunDir r;
-  r.dir_ = fs::path(run.root) / sanitize_name(run.experiment) / sanitize_name(run.name.empty() ? default_name : run.name);
+  r.dir_ = path_of(run, default_name);
+  r.lock_ = RunLock::acquire(r.dir_);
   fs::path cfg_path = r.dir_ / "config.yaml";
-  if (fs::exists(r.dir_) && run.force) fs::remove_all(r.dir_);
+  std::error_code ec;
+  if (run.force) {
+    // Redo the run where it is: everything but the lock we hold goes.
+    for (const auto& e : fs::directory_iterator(r.dir_, ec))
+      if (e.path().filename() != ".lock") fs::remove_all(e.path(), ec);
+    if (ec) fail("run.force=true: cannot clear '{}': {}", r.dir_.string(), ec.message());
+  }
   if (fs::exists(cfg_path)) {
-    std::string old = read_file(cfg_path);
-    // run.force and run.threads are not part of the run's identity: a run
-    // trained on one thread is reused by a job that asks for all cores.
-    auto strip = [](std::string s) {
-      auto p = s.find("force: true");
-      if (p != std::string::npos) s.replace(p, 11, "force: false");
-      p = s.find("\n  threads: ");
-      if (p != std::string::npos) s.erase(p + 1, s.find('\n', p + 1) - p);
-      return s;
-    };
-    if (strip(old) != strip(resolved_yaml))
+    const std::string old = read_file(cfg_path);
+    const bool same_run = same ? same(old) : old == resolved_yaml;
+    if (!same_run)
       fail("run directory '{}' holds a run with a different config; pick another run.name or pass run.force=true "
            "to replace it (see diff against {})",
            r.dir_.string(), cfg_path.string());
   }
-  std::error_code ec;
   fs::create_directories(r.checkpoints(), ec);
   fs::create_directories(r.outputs(), ec);
   if (ec) fail("cannot create run directory '{}': {}", r.dir_.string(), ec.message());
+  // Temporaries of atomic writes killed before their rename: nobody else writes
+  // here while we hold the lock, so every one of them is stale.
+  std::vector<fs::path> stale;
+  for (auto it = fs::recursive_directory_iterator(r.dir_, ec); !ec && it != fs::recursive_directory_iterator();
+       it.increment(ec))
+    if (it->is_regular_file() && is_atomic_temp(it->path())) stale.push_back(it->path());
+  for (const auto& p : stale) fs::remove(p, ec);
+  ec.clear();
   if (!fs::exists(cfg_path)) {
     write_file_atomic(cfg_path, resolved_yaml);
     std::string ov;

@@ -362,6 +362,9 @@ class VqTokenizerTrainer : public Trainable {
     return lo;
   }
 
+  // The final evaluation reads the test split (reconstructions) and val (the oracle).
+  std::vector<std::string> evaluation_splits() const override { return {"test", "val"}; }
+
   // Whole clips through encode -> decode (world metres): test-split reconstruction
   // MPJPE (plain and root-aligned), the mean-training-pose baseline, code perplexity,
   // codes unused on the split; and the oracle control error on the val split.

@@ -44,16 +44,34 @@ void set_config_redirects(const std::vector<std::string>& from_to, const std::st
   config_redirects() = std::move(out);
 }
 
+static std::string& runs_root_slot() {
+  static std::string root;
+  return root;
+}
+
+RunsRootScope::RunsRootScope(const std::string& root) {
+  if (!runs_root_slot().empty() || root.empty()) return;
+  runs_root_slot() = root;
+  owner_ = true;
+}
+RunsRootScope::~RunsRootScope() {
+  if (owner_) runs_root_slot().clear();
+}
+const std::string& RunsRootScope::current() { return runs_root_slot(); }
+
+// `overrides` plus run.root=<the scope's root>, unless they set run.root already.
+static std::vector<std::string> with_runs_root(std::vector<std::string> overrides) {
+  if (RunsRootScope::current().empty()) return overrides;
+  for (const auto& o : overrides)
+    if (o.rfind("run.root=", 0) == 0) return overrides;
+  overrides.push_back("run.root=" + RunsRootScope::current());
+  return overrides;
+}
+
 static std::string stem_of(const std::string& file) { return fs::path(file).stem().string(); }
 
-// <config stem>-<hash>: run.threads and run.force are not part of a run's identity
-// (a run trained on one thread is the run a two-thread job asks for).
-static std::string identity_hash(const TrainJobConfig& job) {
-  TrainJobConfig key = job;
-  key.run.threads = 0;
-  key.run.force = false;
-  return config_hash(key);
-}
+// <config stem>-<hash>: the hash of the run's identity (RunConfig::non_identity_fields
+// left out: a run trained on one thread is the run a two-thread job asks for).
 static std::string default_run_name(const std::string& file, const TrainJobConfig& job) {
   return fmt::format("{}-{}", stem_of(file), identity_hash(job));
 }
@@ -79,9 +97,12 @@ std::string redirected_config(const std::string& file) {
   return it == config_redirects().end() ? file : resolve_data_path(it->second);
 }
 
-TrainResult run_train(const std::string& requested, const std::vector<std::string>& overrides, const TrainLoopOptions& loop) {
+TrainResult run_train(const std::string& requested, const std::vector<std::string>& given,
+                      const TrainLoopOptions& loop) {
   const std::string file = redirected_config(requested);
+  const std::vector<std::string> overrides = with_runs_root(given);
   auto job = load_job<TrainJobConfig>(file, overrides);
+  RunsRootScope components_root(job.run.root);  // the runs its model trains go beside it
   ensure_training_data(job);
   std::string name = default_run_name(file, job);
   // A component shipped in pretrained/ under this run's name and with this config
@@ -99,7 +120,7 @@ TrainResult run_train(const std::string& requested, const std::vector<std::strin
 
 fs::path run_dir_of(const std::string& requested, const std::vector<std::string>& overrides) {
   const std::string file = redirected_config(requested);
-  auto job = load_job<TrainJobConfig>(file, overrides);
+  auto job = load_job<TrainJobConfig>(file, with_runs_root(overrides));
   std::string name = job.run.name.empty() ? default_run_name(file, job) : job.run.name;
   return fs::path(job.run.root) / job.run.experiment / name;
 }

@@ -20,6 +20,25 @@ std::string run_config_hash(const std::string& config_file, const std::vector<st
 // The run directory run_train(config, overrides) trains or reuses (no training).
 std::filesystem::path run_dir_of(const std::string& config_file, const std::vector<std::string>& overrides);
 
+// The runs root of every component a command trains: while a scope is alive,
+// run_train puts each run it trains (and the runs those need, trained inside it)
+// under `root` unless its overrides set run.root themselves. run.root is no part
+// of a run's identity, so names and hashes stay the same. An inner scope does not
+// replace an outer one: `eval` with run.root=X trains its evaluator under X,
+// `reproduce` every component under profile.runs_root, and run_train itself
+// opens one with the job's run.root for the components its model needs.
+class RunsRootScope {
+ public:
+  explicit RunsRootScope(const std::string& root);
+  ~RunsRootScope();
+  RunsRootScope(const RunsRootScope&) = delete;
+  RunsRootScope& operator=(const RunsRootScope&) = delete;
+  static const std::string& current();  // "" outside every scope
+
+ private:
+  bool owner_ = false;
+};
+
 // Builds the job's training data from data.fixture when data.path is missing.
 void ensure_training_data(const TrainJobConfig& job);
 

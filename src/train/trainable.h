@@ -36,6 +36,9 @@ class Trainable {
   virtual LossOutput loss(const std::vector<int64_t>& batch_indices) = 0;
   // Metrics of the final (EMA) weights, e.g. validation reconstruction error.
   virtual std::map<std::string, double> evaluate() { return {}; }
+  // The splits evaluate() reads: the loop checks them (and "train") before the
+  // first step, so an empty one is refused up front, not after the training.
+  virtual std::vector<std::string> evaluation_splits() const { return {"val"}; }
   // Multiply-add FLOPs (x2) of one training step (forward + backward) on this
   // batch, counting valid frames only; 0 = not known. `motionctl bench train`
   // reports the rate against sgemm's.

@@ -1,15 +1,21 @@
 // The generic training loop with exact resume: model, optimiser, EMA, step,
-// data position and torch's RNG state all live in one atomically written checkpoint.
+// data position and torch's RNG state all live in one atomically written,
+// checksummed checkpoint, written only once its weights are known to be sound.
 #include "train/trainer.h"
 
+#include <c10/util/hash.h>
+
 #include <chrono>
-#include <cstdlib>
 #include <cmath>
+#include <cstdlib>
+#include <optional>
 #include <random>
+#include <sstream>
 #include <thread>
 
 #include "core/atomic_file.h"
 #include "core/error.h"
+#include "core/interrupt.h"
 
 namespace mc {
 
@@ -144,35 +150,57 @@ void set_rng_state(const torch::Tensor& s) {
   gen.set_state(s);
 }
 
+// Everything the loop carries from one step to the next besides the weights,
+// optimiser, EMA and sampler: all of it is checkpointed, so a run stopped at any
+// step (not only a logged one) resumes to the uninterrupted metrics.csv.
 struct LoopState {
   int64_t step = 0;
-  double wall = 0;  // seconds spent in earlier invocations
+  double wall = 0;                      // seconds spent in earlier invocations
+  double last_loss = NAN;               // loss of the last step (summary's final_loss)
+  std::map<std::string, double> accum;  // sums since the last metrics.csv row
+  int64_t accum_n = 0;
 };
 
-void save_checkpoint(const fs::path& path, Trainable& tr, torch::optim::Optimizer& opt,
-                     const std::vector<torch::Tensor>& ema, const LoopState& st, const EpochSampler& sampler) {
+// The bytes of a checkpoint (a torch archive) of the loop's whole state.
+std::string serialize_checkpoint(Trainable& tr, torch::optim::Optimizer& opt, const std::vector<torch::Tensor>& ema,
+                                 const LoopState& st, const EpochSampler& sampler) {
   torch::serialize::OutputArchive ar;
   torch::serialize::OutputArchive model_ar, opt_ar;
   tr.module().save(model_ar);
   opt.save(opt_ar);
+  ar.write("format_version", torch::tensor(static_cast<int64_t>(kCheckpointFormat)));
   ar.write("model", model_ar);
   ar.write("optimizer", opt_ar);
   for (size_t i = 0; i < ema.size(); ++i) ar.write(fmt::format("ema.{}", i), ema[i]);
   ar.write("step", torch::tensor(st.step));
   ar.write("wall", torch::tensor(st.wall, torch::kFloat64));
+  ar.write("last_loss", torch::tensor(st.last_loss, torch::kFloat64));
+  std::string keys;
+  std::vector<double> sums;
+  for (auto& [k, v] : st.accum) {
+    keys += k + "\n";
+    sums.push_back(v);
+  }
+  ar.write("accum_keys", c10::IValue(keys));
+  ar.write("accum_sums", torch::tensor(sums, torch::kFloat64));
+  ar.write("accum_n", torch::tensor(st.accum_n));
   ar.write("sampler_epoch", torch::tensor(sampler.epoch()));
   ar.write("sampler_pos", torch::tensor(sampler.pos()));
   ar.write("rng", rng_state());
-  AtomicOutput out(path);
-  ar.save_to(out.tmp_path().string());
-  out.commit();
+  std::ostringstream os;
+  ar.save_to(os);
+  return os.str();
 }
 
 void load_checkpoint(const fs::path& path, Trainable& tr, torch::optim::Optimizer& opt, std::vector<torch::Tensor>& ema,
-                     LoopState& st, EpochSampler& sampler) {
+                     LoopState& st, EpochSampler& sampler, Logger& log) {
+  bool legacy = false;
+  std::istringstream in(read_checkpoint_payload(path, &legacy));
+  if (legacy)
+    log.info(fmt::format("{} predates checksummed checkpoints (format 1); loading it unchecked", path.string()));
   torch::serialize::InputArchive ar;
   try {
-    ar.load_from(path.string());
+    ar.load_from(in);
     torch::serialize::InputArchive model_ar, opt_ar;
     ar.read("model", model_ar);
     ar.read("optimizer", opt_ar);
@@ -192,6 +220,19 @@ void load_checkpoint(const fs::path& path, Trainable& tr, torch::optim::Optimize
     ar.read("rng", rng);
     st.step = step.item<int64_t>();
     st.wall = wall.item<double>();
+    if (!legacy) {  // format 1 wrote checkpoints on logged steps only: nothing was accumulated
+      torch::Tensor last_loss, sums, n;
+      c10::IValue keys;
+      ar.read("last_loss", last_loss);
+      ar.read("accum_keys", keys);
+      ar.read("accum_sums", sums);
+      ar.read("accum_n", n);
+      st.last_loss = last_loss.item<double>();
+      st.accum_n = n.item<int64_t>();
+      std::istringstream ks(keys.toStringRef());
+      int64_t i = 0;
+      for (std::string k; std::getline(ks, k);) st.accum[k] = sums[i++].item<double>();
+    }
     sampler.restore(epoch.item<int64_t>(), pos.item<int64_t>());
     set_rng_state(rng);
   } catch (const c10::Error& e) {
@@ -200,13 +241,109 @@ void load_checkpoint(const fs::path& path, Trainable& tr, torch::optim::Optimize
   }
 }
 
+bool all_finite(const std::vector<torch::Tensor>& ts) {
+  torch::NoGradGuard ng;
+  for (const auto& t : ts)
+    if (!torch::isfinite(t).all().item<bool>()) return false;
+  return true;
+}
+
+// The loss the weights would give on the next batch, without changing anything
+// the run carries on with (sampler copied, torch RNG restored, no gradients, eval
+// mode so no running statistic or EMA codebook moves): a checkpoint written where
+// the loop stops, and the last step's weights, are checked with it, since no
+// later step will. Weights of ~3e38 are finite yet give an infinite loss.
+double probe_loss(Trainable& tr, EpochSampler sampler, int batch) {
+  torch::Tensor rng = rng_state();
+  const bool was_training = tr.module().is_training();
+  tr.module().eval();
+  double v = 0;
+  try {
+    torch::NoGradGuard ng;
+    v = tr.loss(sampler.next(batch)).loss.item<double>();
+  } catch (const c10::Error&) {
+    v = 0;  // a loss that cannot run without gradients is not probed; the weights were checked
+  }
+  tr.module().train(was_training);
+  set_rng_state(rng);
+  return v;
+}
+
+// The loss column of metrics.csv's last row (final_loss of a format-1 checkpoint
+// taken on the last step, which did not record the step's own loss).
+double last_logged_loss(const fs::path& metrics) {
+  if (!fs::exists(metrics)) return NAN;
+  std::istringstream in(read_file(metrics));
+  std::string header, line, last;
+  std::getline(in, header);
+  while (std::getline(in, line))
+    if (!line.empty()) last = line;
+  std::istringstream hs(header), ls(last);
+  for (std::string h, v; std::getline(hs, h, ',') && std::getline(ls, v, ',');)
+    if (h == "loss") return std::strtod(v.c_str(), nullptr);
+  return NAN;
+}
+
 std::string format_eta(double seconds) {
   if (!std::isfinite(seconds) || seconds < 0) return "?";
   int s = static_cast<int>(seconds);
   return s >= 3600 ? fmt::format("{}h{:02}m", s / 3600, s / 60 % 60) : fmt::format("{}m{:02}s", s / 60, s % 60);
 }
 
+// The config text of an existing run directory is the same run as `identity`
+// (identity_yaml of the job): equal once the non-identity fields are cleared.
+bool same_train_run(const std::string& existing_yaml, const std::string& identity) {
+  try {
+    TrainJobConfig old;
+    parse_config(config_from_string(existing_yaml, "config.yaml"), old);
+    return identity_yaml(old) == identity;
+  } catch (const UserError&) {
+    return false;  // written by a version with other fields: not provably the same run
+  }
+}
+
 }  // namespace
+
+// ---------------------------------------------------------------- checkpoint files
+
+namespace {
+constexpr const char* kCheckpointMagic = "motionctl-checkpoint";
+}
+
+void write_checkpoint_file(const fs::path& path, const std::string& payload) {
+  const std::string header = fmt::format("{} {} sha1 {} bytes {}\n", kCheckpointMagic, kCheckpointFormat,
+                                         c10::sha1(payload).str(), payload.size());
+  write_file_atomic(path, header + payload);
+}
+
+std::string read_checkpoint_payload(const fs::path& path, bool* legacy) {
+  std::string bytes = read_file(path);
+  if (legacy) *legacy = false;
+  if (bytes.rfind("PK", 0) == 0) {  // format 1: a bare torch archive (a zip), no checksum
+    if (legacy) *legacy = true;
+    return bytes;
+  }
+  const auto nl = bytes.find('\n');
+  std::istringstream head(bytes.substr(0, nl == std::string::npos ? 0 : std::min<size_t>(nl, 200)));
+  std::string magic, sha_word, sha, bytes_word;
+  int format = 0;
+  size_t size = 0;
+  head >> magic >> format >> sha_word >> sha >> bytes_word >> size;
+  const std::string fix = "delete it to restart the run from its beginning, or pass run.force=true";
+  if (nl == std::string::npos || magic != kCheckpointMagic || sha_word != "sha1" || bytes_word != "bytes")
+    fail("checkpoint '{}' is corrupt: it does not start with a motionctl checkpoint header; {}", path.string(), fix);
+  if (format > kCheckpointFormat)
+    fail("checkpoint '{}' has format {}, newer than this motionctl reads ({}); update motionctl", path.string(), format,
+         kCheckpointFormat);
+  std::string payload = bytes.substr(nl + 1);
+  if (payload.size() != size)
+    fail("checkpoint '{}' is corrupt: {} bytes after the header, the header says {} (truncated?); {}", path.string(),
+         payload.size(), size, fix);
+  const std::string got = c10::sha1(payload).str();
+  if (got != sha)
+    fail("checkpoint '{}' is corrupt: its SHA-1 is {}, the header says {}; {}", path.string(), got, sha, fix);
+  return payload;
+}
 
 // ---------------------------------------------------------------- loop
 
@@ -217,18 +354,30 @@ TrainResult train(TrainJobConfig& job, const std::vector<std::string>& overrides
     fail("run.checkpoint_every ({}) must be a multiple of run.log_every ({}) so checkpoints fall on logged steps",
          job.run.checkpoint_every, job.run.log_every);
   TrainResult result;
-  RunDir run = RunDir::open(job.run, dump_config(job), overrides, default_name);
-  result.run_dir = run.path();
-  if (run.finished()) {
+  const std::string yaml = dump_config(job);
+  const std::string identity = identity_yaml(job);
+  const RunDir::SameRun same = [&](const std::string& old) { return same_train_run(old, identity); };
+  auto finished_result = [&](RunDir& run) {
     run.log().info(fmt::format("{} is finished; nothing to do (run.force=true redoes it)", run.path().string()));
+    result.run_dir = run.path();
     result.skipped = true;
     result.summary = run.summary();
     return result;
+  };
+  // A finished run is a no-op: answered without loading data or building the model.
+  if (!job.run.force && fs::exists(RunDir::path_of(job.run, default_name) / "DONE")) {
+    RunDir run = RunDir::open(job.run, yaml, overrides, default_name, same);
+    if (run.finished()) return finished_result(run);
   }
+
+  // Everything that can refuse the job is checked before the run directory is
+  // claimed, so a failed start leaves no directory (an explicit run.name stays free).
   torch::Device device = setup_torch(job.run);
   auto data = MotionDataset::load(resolve_data_path(job.data.path));
   TrainContext ctx{data, device, &job, job.data.window, job.data.trim_padding};
   auto trainable = make_trainable(job.model, ctx);
+  data->split("train");  // UserError naming the file and split when empty
+  for (const auto& s : trainable->evaluation_splits()) data->split(s);
   trainable->module().to(device);
   auto params = trainable->trainable_parameters();
   int64_t n_params = 0;
@@ -239,11 +388,18 @@ TrainResult train(TrainJobConfig& job, const std::vector<std::string>& overrides
   if (job.optim.ema_decay > 0)
     for (auto& p : params) ema.push_back(p.detach().clone());
   EpochSampler sampler = make_sampler(job, *data);
+
+  RunDir run = RunDir::open(job.run, yaml, overrides, default_name, same);
+  result.run_dir = run.path();
+  if (run.finished()) return finished_result(run);  // finished by another process meanwhile
+  InterruptScope interrupt_scope;
   MetricsCsv metrics(run.metrics_path());
   LoopState st;
   fs::path last = run.checkpoints() / "last.pt";
+  int64_t saved_step = -1;  // step of the checkpoint on disk (-1: none)
   if (fs::exists(last)) {
-    load_checkpoint(last, *trainable, opt, ema, st, sampler);
+    load_checkpoint(last, *trainable, opt, ema, st, sampler, run.log());
+    saved_step = st.step;
     metrics.truncate_after(st.step);
     run.log().info(fmt::format("resuming {} from step {} ({} threads)", run.path().string(), st.step,
                                torch::get_num_threads()));
@@ -253,23 +409,58 @@ TrainResult train(TrainJobConfig& job, const std::vector<std::string>& overrides
                                n_params, torch::get_num_threads(), device.str(), run.path().string()));
   }
 
+  auto diverged = [&](const std::string& what) {
+    const std::string kept = saved_step >= 0 ? fmt::format("its last good checkpoint (step {}) is kept", saved_step)
+                                             : std::string("no checkpoint had been written");
+    fail("training diverged: {} in {}; nothing of the diverged steps was saved ({}). Lower optim.lr (now {:g}), or "
+         "raise optim.warmup (now {}) or lower optim.grad_clip (now {:g}), and train again (a changed optim "
+         "value is a new run)",
+         what, run.path().string(), kept, job.optim.lr, job.optim.warmup, job.optim.grad_clip);
+  };
+
   const auto t0 = std::chrono::steady_clock::now();
   const int64_t first_step = st.step;
-  std::map<std::string, double> accum;
-  int64_t accum_n = 0;
   auto wall_now = [&] {
     return st.wall + std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   };
-  double last_loss = NAN;
+  auto snapshot_state = [&] {
+    LoopState s = st;
+    s.wall = wall_now();
+    return serialize_checkpoint(*trainable, opt, ema, s, sampler);
+  };
+  // A periodic checkpoint is written only once the next step's loss shows its
+  // weights are sound (weights of ~3e38 are finite, yet give an infinite loss):
+  // a diverged run never leaves a checkpoint it cannot resume from.
+  struct Pending {
+    int64_t step;
+    std::string bytes;
+  };
+  std::optional<Pending> pending;
+  auto commit_pending = [&] {
+    if (!pending) return;
+    write_checkpoint_file(last, pending->bytes);
+    saved_step = pending->step;
+    pending.reset();
+  };
+  // Where the loop stops early (--stop-after, a signal): no next step will check
+  // this checkpoint, so the weights and a probe of the next batch's loss do.
+  auto checkpoint_here = [&] {
+    if (saved_step == st.step) return;
+    if (!pending || pending->step != st.step) pending = Pending{st.step, snapshot_state()};
+    if (!all_finite(params) || !all_finite(ema)) diverged(fmt::format("the weights are not finite at step {}", st.step));
+    const double probe = probe_loss(*trainable, sampler, job.optim.batch_size);
+    if (!std::isfinite(probe)) diverged(fmt::format("the weights of step {} give a loss of {}", st.step, probe));
+    commit_pending();
+  };
+
   while (st.step < job.optim.steps) {
     double lr = scheduled_lr(job.optim, st.step);
     for (auto& g : opt.param_groups()) static_cast<torch::optim::AdamWOptions&>(g.options()).lr(lr);
     auto idx = sampler.next(job.optim.batch_size);
     LossOutput out = trainable->loss(idx);
     double loss_v = out.loss.item<double>();
-    if (!std::isfinite(loss_v))
-      fail("training diverged: loss is {} at step {} of {}; lower optim.lr or raise optim.warmup", loss_v, st.step,
-           run.path().string());
+    if (!std::isfinite(loss_v)) diverged(fmt::format("the loss is {} at step {}", loss_v, st.step));
+    commit_pending();  // the weights it holds just gave a finite loss
     opt.zero_grad();
     out.loss.backward();
     double gnorm = 0;
@@ -281,11 +472,11 @@ TrainResult train(TrainJobConfig& job, const std::vector<std::string>& overrides
       for (size_t i = 0; i < ema.size(); ++i) ema[i].mul_(d).add_(params[i].detach(), 1.0 - d);
     }
     ++st.step;
-    accum["loss"] += loss_v;
-    for (auto& [k, v] : out.parts) accum[k] += v.item<double>();
-    accum["grad_norm"] += gnorm;
-    ++accum_n;
-    last_loss = loss_v;
+    st.accum["loss"] += loss_v;
+    for (auto& [k, v] : out.parts) st.accum[k] += v.item<double>();
+    st.accum["grad_norm"] += gnorm;
+    ++st.accum_n;
+    st.last_loss = loss_v;
 
     double elapsed = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     double ips = (st.step - first_step) / std::max(1e-9, elapsed);
@@ -295,17 +486,18 @@ TrainResult train(TrainJobConfig& job, const std::vector<std::string>& overrides
     bool last_step = st.step == job.optim.steps;
     if (st.step % job.run.log_every == 0 || last_step) {
       std::vector<std::pair<std::string, double>> row{{"wall_time", wall_now()}, {"lr", lr}};
-      for (auto& [k, v] : accum) row.emplace_back(k, v / accum_n);
+      for (auto& [k, v] : st.accum) row.emplace_back(k, v / st.accum_n);
       metrics.append(st.step, row);
-      accum.clear();
-      accum_n = 0;
+      st.accum.clear();
+      st.accum_n = 0;
       if (!Logger::interactive()) run.log().info(line);
     }
-    if (st.step % job.run.checkpoint_every == 0 || last_step) {
-      LoopState snap{st.step, wall_now()};
-      save_checkpoint(last, *trainable, opt, ema, snap, sampler);
+    if (st.step % job.run.checkpoint_every == 0 && !last_step) {
+      if (!all_finite(params) || !all_finite(ema)) diverged(fmt::format("the weights are not finite at step {}", st.step));
+      pending = Pending{st.step, snapshot_state()};
     }
     if (loop.snapshot_every > 0 && st.step % loop.snapshot_every == 0 && !last_step) {
+      if (!all_finite(params) || !all_finite(ema)) diverged(fmt::format("the weights are not finite at step {}", st.step));
       // The weights final.pt would hold now: EMA swapped in, saved, swapped back.
       torch::NoGradGuard ng;
       std::vector<torch::Tensor> live;
@@ -322,15 +514,39 @@ TrainResult train(TrainJobConfig& job, const std::vector<std::string>& overrides
       // Vocabulary and metadata too, so a snapshot of a run still training can be loaded.
       trainable->save_artifacts(run.outputs());
     }
-    if (stop_after > 0 && st.step - first_step >= stop_after && !last_step) {
-      run.log().info(fmt::format("stopping at step {} as asked (resume by running again)", st.step));
+    if (last_step) break;
+    if (const int sig = interrupt_requested()) {
+      run.log().end_progress();
+      checkpoint_here();
+      clear_interrupt();
+      const std::string msg = fmt::format("interrupted by signal {} at step {}: checkpoint written in {}; running "
+                                          "the same command again resumes from it",
+                                          sig, st.step, last.string());
+      run.log().info(msg);
+      throw Interrupted(sig, msg);
+    }
+    if (stop_after > 0 && st.step - first_step >= stop_after) {
+      run.log().end_progress();
+      checkpoint_here();
+      run.log().info(fmt::format("stopping at step {} as asked: checkpoint written in {}; running the same command "
+                                 "again resumes from it",
+                                 st.step, last.string()));
       result.summary["step"] = st.step;
       return result;
     }
   }
   run.log().end_progress();
 
-  // Final weights: the EMA copy, when there is one.
+  // The end: the training state of the last step, then the final weights (the
+  // EMA copy when there is one) and their evaluation. Each is checked before
+  // anything is written, so last.pt, final.pt, summary.csv and DONE only ever
+  // hold finite numbers; last.pt comes first, so a kill before DONE resumes
+  // here without training again.
+  if (!all_finite(params) || !all_finite(ema)) diverged(fmt::format("the weights are not finite at step {}", st.step));
+  if (const double probe = probe_loss(*trainable, sampler, job.optim.batch_size); !std::isfinite(probe))
+    diverged(fmt::format("the weights of the last step ({}) give a loss of {}", st.step, probe));
+  if (std::isnan(st.last_loss)) st.last_loss = last_logged_loss(run.metrics_path());  // format-1 checkpoint
+  const std::string final_state = snapshot_state();
   if (!ema.empty()) {
     torch::NoGradGuard ng;
     for (size_t i = 0; i < ema.size(); ++i) params[i].copy_(ema[i]);
@@ -338,9 +554,12 @@ TrainResult train(TrainJobConfig& job, const std::vector<std::string>& overrides
   trainable->module().eval();
   std::map<std::string, double> summary = trainable->evaluate();
   summary["steps"] = static_cast<double>(st.step);
-  summary["final_loss"] = last_loss;
+  summary["final_loss"] = st.last_loss;
   summary["trainable_params"] = static_cast<double>(n_params);
   summary["wall_time"] = wall_now();
+  for (auto& [k, v] : summary)
+    if (!std::isfinite(v)) diverged(fmt::format("the final weights give {} = {}", k, v));
+  if (saved_step != st.step) write_checkpoint_file(last, final_state);
   {
     torch::serialize::OutputArchive ar;
     trainable->module().save(ar);

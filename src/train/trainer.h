@@ -99,11 +99,23 @@ EpochSampler make_sampler(const TrainJobConfig& job, const MotionDataset& data);
 // Applies run.threads/device/seed; returns the device.
 torch::Device setup_torch(const RunConfig& run);
 
+// checkpoints/last.pt: a header line "motionctl-checkpoint <format> sha1 <hex>
+// bytes <n>" then the torch archive it checks. Format 1 (a bare archive, before
+// the header) is still read, unchecked.
+inline constexpr int kCheckpointFormat = 2;
+// Writes `payload` (a torch archive's bytes) atomically with its header.
+void write_checkpoint_file(const fs::path& path, const std::string& payload);
+// The checked archive bytes of a checkpoint file; UserError naming the file when
+// it is corrupt (header, size or SHA-1) or newer than this build. `legacy` (may
+// be null) is set for a format-1 file.
+std::string read_checkpoint_payload(const fs::path& path, bool* legacy = nullptr);
+
 // How one invocation drives the loop. Not part of the config (and of the run's
 // name): they change what is observed, never what is trained.
 struct TrainLoopOptions {
-  // > 0: stop (without finishing) after that many steps of this invocation;
-  // running again resumes. Used by tests of resume and to split long trainings.
+  // > 0: stop (without finishing) after that many steps of this invocation,
+  // writing a checkpoint at the step reached; running again resumes from it. Used
+  // by tests of resume and to split long trainings.
   int64_t stop_after = 0;
   // > 0: every that many steps also write the weights a finished run would hold
   // at that step (the EMA copy when there is one) to checkpoints/snapshot_NNNNNN.pt,
@@ -112,7 +124,11 @@ struct TrainLoopOptions {
 };
 
 // Trains (or resumes, or skips) the run described by `job`. `default_name` names
-// the run directory when run.name is empty.
+// the run directory when run.name is empty. The directory is locked for the
+// call (RunLock) and claimed only once data, splits, device and model are
+// checked. A non-finite loss or weight stops it with a UserError naming the knob
+// to change, before anything of the diverged steps is written. SIGINT/SIGTERM
+// write a checkpoint at the step reached and throw Interrupted.
 TrainResult train(TrainJobConfig& job, const std::vector<std::string>& overrides, const std::string& default_name,
                   const TrainLoopOptions& loop = {});
 
