@@ -362,8 +362,9 @@ class VqTokenizerTrainer : public Trainable {
     return lo;
   }
 
-  // The final evaluation reads the test split (reconstructions) and val (the oracle).
-  std::vector<std::string> evaluation_splits() const override { return {"test", "val"}; }
+  // The final evaluation needs the test split (reconstructions); the oracle on val is
+  // skipped when val is empty.
+  std::vector<std::string> evaluation_splits() const override { return {"test"}; }
 
   // Whole clips through encode -> decode (world metres): test-split reconstruction
   // MPJPE (plain and root-aligned), the mean-training-pose baseline, code perplexity,
