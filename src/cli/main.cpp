@@ -1,17 +1,37 @@
 // motionctl: the command-line entry point. Subcommands are thin: parse, call, print.
 // Exit codes: 0 ok, 2 bad input (config, files, values), 1 internal error.
 #include <CLI/CLI.hpp>
+#include <unistd.h>
+
 #include <cstdlib>
+#include <new>
+#include <string>
 #include <iostream>
 
 #include "cli/commands.h"
 #include "core/error.h"
+#include "core/resources.h"
+
+namespace {
+
+// OpenMP threads spin while waiting by default; when the cores are shared (CI,
+// parallel builds, several runs) that turns a 6 it/s loop into 0.1 it/s. libgomp
+// reads OMP_WAIT_POLICY once, in its load-time constructor, before main() runs, so
+// setting it here is too late for this process: set it and re-execute the binary
+// once (a user's own setting wins and skips the re-exec). MOTIONCTL_NO_REEXEC=1
+// turns this off, e.g. under a debugger.
+void ensure_passive_openmp(char** argv) {
+  if (std::getenv("OMP_WAIT_POLICY") || std::getenv("MOTIONCTL_NO_REEXEC")) return;
+  ::setenv("OMP_WAIT_POLICY", "PASSIVE", 1);
+  ::setenv("MOTIONCTL_NO_REEXEC", "1", 1);  // never loop, whatever the exec does
+  ::execv("/proc/self/exe", argv);
+  // exec failed (no /proc): carry on; libgomp keeps its default policy.
+}
+
+}  // namespace
 
 int main(int argc, char** argv) {
-  // OpenMP threads spin while waiting by default; when the cores are shared
-  // (CI, parallel builds, several runs) that turns a 6 it/s loop into 0.1 it/s.
-  // Must be set before the first parallel region; a user's setting wins.
-  ::setenv("OMP_WAIT_POLICY", "PASSIVE", 0);
+  ensure_passive_openmp(argv);
   CLI::App app{"motionctl: spatially controlled human motion generation (ProjFlow, AnchorRoute)"};
   app.require_subcommand(1);
   mc::add_fixture_command(app);
@@ -33,7 +53,20 @@ int main(int argc, char** argv) {
   } catch (const mc::UserError& e) {
     std::cerr << "motionctl: error: " << e.what() << "\n";
     return mc::kExitUserError;
+  } catch (const std::bad_alloc&) {
+    // Sizes are checked up front (core/resources.h); this is what slips through.
+    std::cerr << "motionctl: error: out of memory (" << mc::format_bytes(mc::available_memory_bytes())
+              << " available): a size in the config or an input file is too large for this machine; lower it "
+                 "(model.width, optim.batch_size, data.window, fixture.num_clips, sampler.batch_size)\n";
+    return mc::kExitUserError;
   } catch (const c10::Error& e) {
+    if (std::string(e.what()).find("can't allocate memory") != std::string::npos) {
+      std::cerr << "motionctl: error: out of memory: " << e.what_without_backtrace() << " ("
+                << mc::format_bytes(mc::available_memory_bytes())
+                << " available); lower the sizes in the config (model.width, optim.batch_size, data.window, "
+                   "sampler.batch_size)\n";
+      return mc::kExitUserError;
+    }
     std::cerr << "motionctl: internal torch error: " << e.what_without_backtrace() << "\n";
     return 1;
   } catch (const std::exception& e) {

@@ -9,6 +9,7 @@
 #include "core/error.h"
 #include "data/fixture/fixture_build.h"
 #include "train/pretrained.h"
+#include "train/train_resources.h"
 
 #include <iostream>
 
@@ -82,6 +83,7 @@ std::string redirected_config(const std::string& file) {
 TrainResult run_train(const std::string& requested, const std::vector<std::string>& overrides, const TrainLoopOptions& loop) {
   const std::string file = redirected_config(requested);
   auto job = load_job<TrainJobConfig>(file, overrides);
+  check_train_resources(job);  // sizes and threads this machine cannot give: exit 2 before any work
   ensure_training_data(job);
   std::string name = default_run_name(file, job);
   // A component shipped in pretrained/ under this run's name and with this config
