@@ -777,3 +777,16 @@ def fail(message: str) -> NoReturn:
     """Exit code 2 with a message on stderr: the tools' contract for bad input."""
     print(f"error: {message}", file=sys.stderr)
     sys.exit(2)
+
+
+if __name__ == "__main__":
+    # `python3 tools/motionio.py reseal FILE...`: after editing a sealed file in place
+    # on purpose (h5py "a" mode), write its seal anew so motionctl reads it again.
+    if len(sys.argv) < 3 or sys.argv[1] != "reseal":
+        fail("usage: python3 tools/motionio.py reseal FILE.h5 [...]")
+    for p in sys.argv[2:]:
+        with open(p, "rb") as fh:
+            if not fh.read(SEAL_BLOCK).startswith(SEAL_MAGIC[:12]):
+                fail(f"{p}: has no seal block (not written by motionctl or motionio); nothing to reseal")
+        seal_h5_file(p)
+        print(f"resealed {p}")

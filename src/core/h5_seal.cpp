@@ -97,8 +97,9 @@ H5Seal check_h5_seal(const std::string& path, const std::string& what) {
          size, want_size);
   if (crc != want_crc)
     fail("{} '{}' is damaged: its checksum (CRC-32 {:08x}) does not match the one written with it ({:08x}), so "
-         "bytes changed after it was written; re-create the file",
-         what, path, crc, want_crc);
+         "bytes changed after it was written; re-create the file (or, if you edited it in place on purpose, e.g. "
+         "with h5py, re-seal it: python3 tools/motionio.py reseal '{}')",
+         what, path, crc, want_crc, path);
   return H5Seal::valid;
 }
 

@@ -45,6 +45,9 @@ void isolated_probe(const std::string& what, const std::function<void()>& probe,
   }
   if (pid == 0) {
     ::close(fds[0]);
+    // Crash handlers inherited from the parent (a test framework's, torch's) would
+    // report the child's crash as the parent's: let the signal end the child.
+    for (int sig : {SIGSEGV, SIGBUS, SIGFPE, SIGILL, SIGABRT}) ::signal(sig, SIG_DFL);
     // Status letter, then the message: 'k' ok, 'u' UserError, 'm' out of memory, 'x' other.
     std::string report = "k";
     try {

@@ -318,7 +318,8 @@ class Reader {
       return s;
     }
     size_t width = H5Tget_size(ftype.get());
-    if (width > file_size_) bad(fmt::format("{} claims {} bytes, more than the file holds", attr_label(obj, name), width), kCorrupt);
+    if (width > file_size_)
+      bad(fmt::format("{} claims {} bytes, more than the file holds", attr_label(obj, name), width), kCorrupt);
     std::vector<char> buf(width + 1, '\0');
     Handle mtype(H5Tcopy(H5T_C_S1), H5Tclose);
     H5Tset_size(mtype.get(), width);

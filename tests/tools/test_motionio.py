@@ -108,6 +108,7 @@ class Validation(unittest.TestCase):
     def broken(self, edit, *expected_words):
         with h5py.File(self.path, "a") as f:
             edit(f)
+        motionio.seal_h5_file(self.path)  # edited in place on purpose: re-seal
         with self.assertRaises(MotionFileError) as ctx:
             motionio.read_motion(self.path)
         msg = str(ctx.exception)
@@ -140,6 +141,7 @@ class Validation(unittest.TestCase):
         self.broken(lambda f: self.replace(f, "lengths", np.array([12, 13, 9], np.int32)), "'lengths'")
         with h5py.File(self.path, "a") as f:
             self.replace(f, "lengths", np.array([12, 0, 9], np.int32))
+        motionio.seal_h5_file(self.path)  # edited in place on purpose: re-seal
         self.assertRaises(MotionFileError, motionio.read_motion, self.path)
 
     def test_ids_unique(self):
@@ -159,6 +161,7 @@ class Validation(unittest.TestCase):
             f.attrs["format_version"] = np.array([1], np.int32)
             f.attrs["format"] = np.bytes_(b"motionctl.motion")
             f["provenance"].attrs["seed"] = np.array([7], np.int64)
+        motionio.seal_h5_file(self.path)  # edited in place on purpose: re-seal
         m = motionio.read_motion(self.path)
         self.assertEqual((m.fps, m.provenance["seed"]), (25.0, 7))
 
