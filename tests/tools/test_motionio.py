@@ -206,6 +206,34 @@ class AtomicWrite(unittest.TestCase):
             shutil.rmtree(tmp, ignore_errors=True)
 
 
+class Seal(unittest.TestCase):
+    """The checksum seal in the user block (docs/formats.md): any changed byte is refused."""
+
+    def test_changed_byte_truncation_and_unsealed(self):
+        tmp = tempfile.mkdtemp(prefix="motionio_seal_")
+        try:
+            path = os.path.join(tmp, "m.h5")
+            motionio.write_motion(path, **sample_data(np.random.default_rng(4)))
+            good = read_bytes(path)
+            self.assertTrue(good.startswith(motionio.SEAL_MAGIC))
+            self.assertTrue(motionio.check_h5_seal(path))
+            for pos in (600, len(good) // 2, len(good) - 1):
+                bad = bytearray(good)
+                bad[pos] ^= 0x20
+                with open(path, "wb") as f:
+                    f.write(bad)
+                self.assertRaisesRegex(MotionFileError, "damaged", motionio.read_motion, path)
+            with open(path, "wb") as f:
+                f.write(good[:-5])
+            self.assertRaisesRegex(MotionFileError, "truncated", motionio.read_motion, path)
+            with open(path, "wb") as f:  # no seal: read as an older file
+                f.write(bytes(motionio.SEAL_BLOCK) + good[motionio.SEAL_BLOCK:])
+            self.assertFalse(motionio.check_h5_seal(path))
+            self.assertEqual(len(motionio.read_motion(path).ids), 3)
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
 class YamlSubset(unittest.TestCase):
     def test_block_and_flow_styles(self):
         text = (
