@@ -18,10 +18,14 @@ namespace {
 // parallel builds, several runs) that turns a 6 it/s loop into 0.1 it/s. libgomp
 // reads OMP_WAIT_POLICY once, in its load-time constructor, before main() runs, so
 // setting it here is too late for this process: set it and re-execute the binary
-// once (a user's own setting wins and skips the re-exec). MOTIONCTL_NO_REEXEC=1
-// turns this off, e.g. under a debugger.
+// once (a user's own setting wins and skips the re-exec). The re-exec loads
+// libtorch twice (~0.4 s of CPU), so it is skipped where no OpenMP worker can
+// spin: OMP_NUM_THREADS=1 (ctest, the fuzz suite). MOTIONCTL_NO_REEXEC=1 turns it
+// off, e.g. under a debugger. (A .preinit_array setenv is too early: libc's own
+// initialiser then resets environ to the original block; measured, no effect.)
 void ensure_passive_openmp(char** argv) {
   if (std::getenv("OMP_WAIT_POLICY") || std::getenv("MOTIONCTL_NO_REEXEC")) return;
+  if (const char* n = std::getenv("OMP_NUM_THREADS"); n && std::string(n) == "1") return;
   ::setenv("OMP_WAIT_POLICY", "PASSIVE", 1);
   ::setenv("MOTIONCTL_NO_REEXEC", "1", 1);  // never loop, whatever the exec does
   ::execv("/proc/self/exe", argv);
