@@ -287,7 +287,7 @@ T2MEvaluator T2MEvaluator::load(const std::string& run_dir) {
     torch::serialize::InputArchive ar;
     ar.load_from(final_pt.string());
     ev.net_->load(ar);
-  } catch (const c10::Error& e) {
+  } catch (const std::exception&) {  // c10::Error, or torch::jit::ErrorReport on a damaged file
     fail("evaluator checkpoint '{}' is unreadable or does not match its config.yaml", final_pt.string());
   }
   ev.net_->eval();

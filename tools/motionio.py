@@ -6,6 +6,7 @@ import math
 import os
 import re
 import sys
+import zlib
 from typing import Dict, Iterable, List, NoReturn, Optional
 
 import numpy as np
@@ -19,6 +20,56 @@ STR_DTYPE = h5py.string_dtype(encoding="utf-8")
 
 class MotionFileError(Exception):
     """Bad or unreadable input; the message names the file/key and how to fix it."""
+
+
+# --------------------------------------------------------------------------
+# The checksum seal (src/core/h5_seal.h, docs/formats.md): HDF5's 512-byte user
+# block, which libhdf5 skips, holds the file size and the CRC-32 of every byte
+# after it, so a damaged file is refused before libhdf5 (which can crash on
+# damaged metadata) reads it.
+
+SEAL_BLOCK = 512
+SEAL_MAGIC = b"motionctl-h5-seal 1\n"
+
+
+def _body_crc(path: str):
+    crc, size = 0, 0
+    with open(path, "rb") as f:
+        f.seek(SEAL_BLOCK)
+        while True:
+            buf = f.read(1 << 20)
+            if not buf:
+                break
+            crc = zlib.crc32(buf, crc)
+        size = f.seek(0, os.SEEK_END)
+    return crc & 0xFFFFFFFF, size
+
+
+def seal_h5_file(path: str) -> None:
+    """Write the seal into the user block of a closed file created with userblock_size=512."""
+    crc, size = _body_crc(path)
+    block = SEAL_MAGIC + f"size {size}\ncrc32 {crc:08x}\n".encode()
+    with open(path, "r+b") as f:
+        f.write(block.ljust(SEAL_BLOCK, b"\0"))
+
+
+def check_h5_seal(path: str) -> bool:
+    """True when the file has a matching seal, False when it has none; MotionFileError when it does not match."""
+    with open(path, "rb") as f:
+        head = f.read(SEAL_BLOCK)
+    if not head.startswith(SEAL_MAGIC):
+        return False
+    m = re.match(rb"size (\d+)\ncrc32 ([0-9a-f]{8})\n", head[len(SEAL_MAGIC):])
+    if not m:
+        raise MotionFileError(f"{path}: damaged: its checksum header cannot be parsed; re-create the file")
+    crc, size = _body_crc(path)
+    if size != int(m.group(1)):
+        raise MotionFileError(f"{path}: damaged or truncated: {size} bytes, written with {int(m.group(1))}; "
+                              "re-create the file")
+    if crc != int(m.group(2), 16):
+        raise MotionFileError(f"{path}: damaged: its CRC-32 {crc:08x} does not match the one written with it "
+                              f"({m.group(2).decode()}); re-create the file")
+    return True
 
 
 # --------------------------------------------------------------------------
@@ -451,6 +502,7 @@ def read_motion(path: str) -> Motion:
     """Read and validate a motion file; raises MotionFileError naming the file and dataset."""
     if not os.path.isfile(path):
         raise MotionFileError(f"{path}: no such file; pass an existing motion file (*.h5)")
+    check_h5_seal(path)
     try:
         f = h5py.File(path, "r")
     except OSError:
@@ -639,7 +691,11 @@ def write_motion(path: str, joints, lengths, ids, split, captions, skeleton: Opt
     flat_captions = [c for cs in captions for c in cs]
 
     def write(tmp):
-        with h5py.File(tmp, "w") as f:
+        _write_body(tmp)
+        seal_h5_file(tmp)
+
+    def _write_body(tmp):
+        with h5py.File(tmp, "w", userblock_size=SEAL_BLOCK) as f:
             f.attrs["format"] = FORMAT_NAME
             f.attrs["format_version"] = np.int64(FORMAT_VERSION)
             f.attrs["fps"] = np.float64(fps)
@@ -721,3 +777,16 @@ def fail(message: str) -> NoReturn:
     """Exit code 2 with a message on stderr: the tools' contract for bad input."""
     print(f"error: {message}", file=sys.stderr)
     sys.exit(2)
+
+
+if __name__ == "__main__":
+    # `python3 tools/motionio.py reseal FILE...`: after editing a sealed file in place
+    # on purpose (h5py "a" mode), write its seal anew so motionctl reads it again.
+    if len(sys.argv) < 3 or sys.argv[1] != "reseal":
+        fail("usage: python3 tools/motionio.py reseal FILE.h5 [...]")
+    for p in sys.argv[2:]:
+        with open(p, "rb") as fh:
+            if not fh.read(SEAL_BLOCK).startswith(SEAL_MAGIC[:12]):
+                fail(f"{p}: has no seal block (not written by motionctl or motionio); nothing to reseal")
+        seal_h5_file(p)
+        print(f"resealed {p}")

@@ -11,9 +11,22 @@ struct BlasBenchResult {
   int threads = 0;
   double gflops = 0;
   double seconds_per_call = 0;
+  double cpu_share = 1;  // CPU time this process got / (wall time x threads) while timing; < 1 = others took cores
 };
 // Single-precision GEMM throughput of torch::mm at `threads` (0 = all cores).
-BlasBenchResult bench_sgemm(int threads, int64_t m = 12544, int64_t n = 256, int64_t k = 256, double min_seconds = 1.0);
+BlasBenchResult bench_sgemm(int threads, int64_t m = 12544, int64_t n = 256, int64_t k = 256, double min_seconds = 0.5);
+
+// Which BLAS this process runs: the resolved path of every BLAS library mapped
+// into it (/proc/self/maps) and OpenBLAS's own config string when it is loaded.
+struct LinkedBlas {
+  std::vector<std::string> libraries;  // e.g. /usr/lib/x86_64-linux-gnu/openblas-openmp/libblas.so.3
+  std::string openblas_config;         // openblas_get_config(), "" when OpenBLAS is not loaded
+  bool reference = false;              // Debian's reference BLAS (netlib) is among the libraries
+};
+LinkedBlas linked_blas();
+
+// The verdict `bench blas` prints: a wrong BLAS, a busy machine, or healthy.
+std::string blas_verdict(const BlasBenchResult& r, const LinkedBlas& blas, double load_average, int cpus);
 
 inline constexpr double kMinHealthyGflops = 20.0;
 

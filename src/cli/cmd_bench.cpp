@@ -1,10 +1,12 @@
 // `motionctl bench blas [--threads N]`: speed checks (more benchmarks join as the systems land).
+#include <fstream>
 #include <iostream>
 
 #include "bench/bench.h"
 #include "cli/commands.h"
 #include "train/train_job.h"
 #include "core/error.h"
+#include "core/resources.h"
 #include "data/skeleton.h"
 #include "eval/evaluation.h"
 
@@ -20,14 +22,19 @@ void add_bench_command(CLI::App& app) {
   auto threads = std::make_shared<int>(0);
   blas->add_option("--threads", *threads, "torch threads (0 = all cores)")->check(CLI::NonNegativeNumber);
   blas->callback([threads] {
+    check_thread_count(*threads, "--threads");
     BlasBenchResult r = bench_sgemm(*threads);
-    std::cout << fmt::format("sgemm 12544x256x256: {:.1f} GFLOP/s at {} thread(s) ({:.2f} ms per call)\n", r.gflops,
-                             r.threads, r.seconds_per_call * 1e3);
-    if (r.gflops < kMinHealthyGflops)
-      std::cout << fmt::format(
-          "WARNING: below {:.0f} GFLOP/s: torch is probably using Debian's reference BLAS. Install "
-          "libopenblas0-openmp (make deps does) and check `update-alternatives --display libblas.so.3-x86_64-linux-gnu`.\n",
-          kMinHealthyGflops);
+    LinkedBlas blas = linked_blas();
+    double load = 0;
+    std::ifstream("/proc/loadavg") >> load;
+    std::cout << fmt::format("sgemm 12544x256x256: {:.1f} GFLOP/s at {} thread(s) ({:.2f} ms per call, {:.0f}% of "
+                             "the CPU time those threads could use)\n",
+                             r.gflops, r.threads, r.seconds_per_call * 1e3, 100 * r.cpu_share);
+    for (auto& lib : blas.libraries) std::cout << "BLAS library: " << lib << "\n";
+    if (!blas.openblas_config.empty()) std::cout << "OpenBLAS: " << blas.openblas_config << "\n";
+    std::cout << fmt::format("load average {:.2f} on {} CPU(s)\n", load, usable_cpus());
+    const std::string verdict = blas_verdict(r, blas, load, usable_cpus());
+    std::cout << (verdict == "ok" ? std::string("verdict: ok") : "WARNING: " + verdict) << "\n";
   });
 
   auto* pf = cmd->add_subcommand("projflow", "ProjFlow vs unconstrained sampling time; structured vs dense solver");

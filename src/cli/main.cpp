@@ -3,18 +3,42 @@
 // use or a diverged training), 1 internal error, 128 + signal when SIGINT/SIGTERM
 // stopped a training after writing its checkpoint (130 for Ctrl-C).
 #include <CLI/CLI.hpp>
+#include <unistd.h>
+
 #include <cstdlib>
+#include <new>
+#include <string>
 #include <iostream>
 
 #include "cli/commands.h"
 #include "core/error.h"
 #include "core/interrupt.h"
+#include "core/resources.h"
+
+namespace {
+
+// OpenMP threads spin while waiting by default; when the cores are shared (CI,
+// parallel builds, several runs) that turns a 6 it/s loop into 0.1 it/s. libgomp
+// reads OMP_WAIT_POLICY once, in its load-time constructor, before main() runs, so
+// setting it here is too late for this process: set it and re-execute the binary
+// once (a user's own setting wins and skips the re-exec). The re-exec loads
+// libtorch twice (~0.4 s of CPU), so it is skipped where no OpenMP worker can
+// spin: OMP_NUM_THREADS=1 (ctest, the fuzz suite). MOTIONCTL_NO_REEXEC=1 turns it
+// off, e.g. under a debugger. (A .preinit_array setenv is too early: libc's own
+// initialiser then resets environ to the original block; measured, no effect.)
+void ensure_passive_openmp(char** argv) {
+  if (std::getenv("OMP_WAIT_POLICY") || std::getenv("MOTIONCTL_NO_REEXEC")) return;
+  if (const char* n = std::getenv("OMP_NUM_THREADS"); n && std::string(n) == "1") return;
+  ::setenv("OMP_WAIT_POLICY", "PASSIVE", 1);
+  ::setenv("MOTIONCTL_NO_REEXEC", "1", 1);  // never loop, whatever the exec does
+  ::execv("/proc/self/exe", argv);
+  // exec failed (no /proc): carry on; libgomp keeps its default policy.
+}
+
+}  // namespace
 
 int main(int argc, char** argv) {
-  // OpenMP threads spin while waiting by default; when the cores are shared
-  // (CI, parallel builds, several runs) that turns a 6 it/s loop into 0.1 it/s.
-  // Must be set before the first parallel region; a user's setting wins.
-  ::setenv("OMP_WAIT_POLICY", "PASSIVE", 0);
+  ensure_passive_openmp(argv);
   CLI::App app{"motionctl: spatially controlled human motion generation (ProjFlow, AnchorRoute)"};
   app.require_subcommand(1);
   mc::add_fixture_command(app);
@@ -39,7 +63,20 @@ int main(int argc, char** argv) {
   } catch (const mc::Interrupted& e) {
     std::cerr << "motionctl: " << e.what() << "\n";
     return 128 + e.signal;
+  } catch (const std::bad_alloc&) {
+    // Sizes are checked up front (core/resources.h); this is what slips through.
+    std::cerr << "motionctl: error: out of memory (" << mc::format_bytes(mc::available_memory_bytes())
+              << " available): a size in the config or an input file is too large for this machine; lower it "
+                 "(model.width, optim.batch_size, data.window, fixture.num_clips, sampler.batch_size)\n";
+    return mc::kExitUserError;
   } catch (const c10::Error& e) {
+    if (std::string(e.what()).find("can't allocate memory") != std::string::npos) {
+      std::cerr << "motionctl: error: out of memory: " << e.what_without_backtrace() << " ("
+                << mc::format_bytes(mc::available_memory_bytes())
+                << " available); lower the sizes in the config (model.width, optim.batch_size, data.window, "
+                   "sampler.batch_size)\n";
+      return mc::kExitUserError;
+    }
     std::cerr << "motionctl: internal torch error: " << e.what_without_backtrace() << "\n";
     return 1;
   } catch (const std::exception& e) {

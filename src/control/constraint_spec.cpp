@@ -19,6 +19,9 @@
 #include "core/atomic_file.h"
 #include "core/config.h"
 #include "core/error.h"
+#include "core/yaml_strict.h"
+#include "core/h5_seal.h"
+#include "core/isolated.h"
 
 namespace mc {
 
@@ -646,12 +649,8 @@ std::string ConstraintSpec::item_label(int index) const {
 }
 
 ConstraintSpec parse_constraint_spec_yaml(const std::string& text, const std::string& source) {
-  YAML::Node root;
-  try {
-    root = YAML::Load(text);
-  } catch (const YAML::Exception& e) {
-    fail("{}:{}: malformed YAML in the constraint spec: {}", source, e.mark.line + 1, e.msg);
-  }
+  // Strict: duplicate keys, complex keys and extra documents name the line.
+  YAML::Node root = parse_yaml_strict(text, source, "YAML in the constraint spec");
   YAML::Node list;
   if (root.IsSequence()) {
     list = root;
@@ -690,15 +689,30 @@ ConstraintSpec load_constraint_spec(const std::string& path) {
   return parse_constraint_spec_yaml(read_file(path), path);
 }
 
+namespace {
+ConstraintSpec load_constraint_spec_h5_unchecked(const std::string& path, const std::string& group);
+}
+
+// Sealed files (core/h5_seal.h) are checked by checksum; unsealed ones are read in
+// a child process first, so libhdf5 crashing on a damaged file cannot take us down.
 ConstraintSpec load_constraint_spec_h5(const std::string& path, const std::string& group) {
-  QuietHdf5 quiet;
   if (!std::filesystem::exists(path)) fail("{}: no such constraint file", path);
+  if (std::filesystem::is_directory(path)) fail("{}: is a directory, not a constraint file", path);
+  if (check_h5_seal(path, "constraint file") == H5Seal::absent)
+    isolated_probe(fmt::format("constraint file '{}'", path), [&] { load_constraint_spec_h5_unchecked(path, group); });
+  return load_constraint_spec_h5_unchecked(path, group);
+}
+
+namespace {
+ConstraintSpec load_constraint_spec_h5_unchecked(const std::string& path, const std::string& group) {
+  QuietHdf5 quiet;
   H5Handle file(H5Fopen(path.c_str(), H5F_ACC_RDONLY, H5P_DEFAULT), H5Fclose);
   if (!file.valid()) fail("{}: not a readable HDF5 file", path);
   if (H5Lexists(file.get(), group.c_str(), H5P_DEFAULT) <= 0)
     fail("{}: no group '{}' (a constraint file keeps its items under /{})", path, group, group);
   return read_constraint_spec_group(file.get(), group, path);
 }
+}  // namespace
 
 ConstraintSpec read_constraint_spec_group(int64_t parent, const std::string& group, const std::string& path) {
   QuietHdf5 quiet;
@@ -754,10 +768,14 @@ void save_constraint_spec_h5(const ConstraintSpec& spec, const std::string& path
   QuietHdf5 quiet;
   AtomicOutput out(path);
   {
-    H5Handle file(H5Fcreate(out.tmp_path().c_str(), H5F_ACC_TRUNC, H5P_DEFAULT, H5P_DEFAULT), H5Fclose);
+    // The user block holds the checksum seal (core/h5_seal.h), written after closing.
+    H5Handle fcpl(H5Pcreate(H5P_FILE_CREATE), H5Pclose);
+    H5Pset_userblock(fcpl.get(), kH5SealBlock);
+    H5Handle file(H5Fcreate(out.tmp_path().c_str(), H5F_ACC_TRUNC, fcpl.get(), H5P_DEFAULT), H5Fclose);
     if (!file.valid()) fail("{}: cannot create the HDF5 file", path);
     write_constraint_spec_group(file.get(), group, spec, path);
-  }
+  }  // closed (flushed) here, before the seal covers its bytes
+  seal_h5_file(out.tmp_path().string(), fmt::format("constraint file '{}'", path));
   out.commit();
 }
 

@@ -9,6 +9,8 @@
 
 #include "control/linear_observation.h"
 #include "core/error.h"
+#include "core/h5_seal.h"
+#include "core/isolated.h"
 
 namespace mc {
 namespace {
@@ -136,7 +138,9 @@ void write_sample_constraints(int64_t file, const std::vector<ConstraintSpec>& s
     write_constraint_spec_group(g.id, fmt::format("sample_{:06d}", i), specs[i], path);
 }
 
-SampleConstraints read_sample_constraints(const std::string& path) {
+namespace {
+
+SampleConstraints read_sample_constraints_unchecked(const std::string& path) {
   QuietHdf5 quiet;
   if (!std::filesystem::exists(path)) fail("{}: no such file", path);
   Handle file{H5Fopen(path.c_str(), H5F_ACC_RDONLY, H5P_DEFAULT), H5Fclose};
@@ -174,6 +178,16 @@ SampleConstraints read_sample_constraints(const std::string& path) {
       if (out.frames[i] < 1) fail("{}: /control/frames[{}] is {}; frame counts must be >= 1", path, i, out.frames[i]);
   }
   return out;
+}
+
+}  // namespace
+
+// Motion files carry a checksum seal (core/h5_seal.h); an unsealed file is read in
+// a child process first so that libhdf5 crashing on damage cannot take us down.
+SampleConstraints read_sample_constraints(const std::string& path) {
+  if (std::filesystem::exists(path) && check_h5_seal(path, "motion file") == H5Seal::absent)
+    isolated_probe(fmt::format("the constraints stored in '{}'", path), [&] { read_sample_constraints_unchecked(path); });
+  return read_sample_constraints_unchecked(path);
 }
 
 }  // namespace mc

@@ -5,15 +5,109 @@
 #include <yaml-cpp/yaml.h>
 
 #include <algorithm>
+#include <cctype>
 #include <cmath>
 #include <cstdlib>
 #include <filesystem>
+#include <fstream>
 #include <sstream>
 
 #include "core/error.h"
+#include "core/yaml_strict.h"
 
 namespace mc {
 namespace fs = std::filesystem;
+
+// ---------------------------------------------------------------- strict YAML
+
+namespace {
+
+struct StrictWalk {
+  const std::string& name;
+  const std::string& what;
+  size_t visited = 0;
+
+  static int line_of(const YAML::Node& n) { return n.Mark().line + 1; }
+
+  void walk(const YAML::Node& n, int depth) {
+    if (++visited > 1000000)
+      fail("{}: {} too large: more than a million values (aliases expanding?); simplify the file", name, what);
+    if (depth > 64)
+      fail("{}:{}: {} nested deeper than 64 levels (a recursive alias?); simplify the file", name, line_of(n), what);
+    if (n.IsSequence()) {
+      for (auto e : n) walk(e, depth + 1);
+    } else if (n.IsMap()) {
+      std::map<std::string, int> seen;
+      for (auto kv : n) {
+        if (!kv.first.IsScalar())
+          fail("{}:{}: {}: a key is a {} (a complex key); keys must be plain names", name, line_of(kv.first), what,
+               kv.first.IsSequence() ? "list" : kv.first.IsMap() ? "mapping" : "null");
+        const std::string key = kv.first.Scalar();
+        auto [it, fresh] = seen.emplace(key, line_of(kv.first));
+        if (!fresh)
+          fail("{}:{}: {}: key '{}' is given twice (first on line {}); remove one of them", name, line_of(kv.first),
+               what, key, it->second);
+        walk(kv.second, depth + 1);
+      }
+    }
+  }
+};
+
+// Line (1-based) where the second document starts: the second '---' line, or the
+// first one after a '...' end marker or after content.
+int second_document_line(const std::string& text) {
+  std::istringstream in(text);
+  std::string line;
+  int no = 0;
+  bool content = false;
+  while (std::getline(in, line)) {
+    ++no;
+    const bool marker = line.rfind("---", 0) == 0 && (line.size() == 3 || std::isspace(static_cast<unsigned char>(line[3])));
+    if (marker && content) return no;
+    if (line.rfind("...", 0) == 0) {
+      content = true;
+      continue;
+    }
+    if (marker) {
+      content = true;  // the first '---' opens document one
+      continue;
+    }
+    auto first = line.find_first_not_of(" \t\r");
+    if (first != std::string::npos && line[first] != '#' && line[first] != '%') content = true;
+  }
+  return 0;
+}
+
+}  // namespace
+
+YAML::Node parse_yaml_strict(const std::string& text, const std::string& name, const std::string& what) {
+  std::vector<YAML::Node> docs;
+  try {
+    docs = YAML::LoadAll(text);
+  } catch (const YAML::Exception& e) {
+    fail("{}:{}:{}: malformed {}: {}", name, e.mark.line + 1, e.mark.column + 1, what, e.msg);
+  }
+  if (docs.size() > 1) {
+    int line = docs[1].Mark().line >= 0 ? docs[1].Mark().line + 1 : second_document_line(text);
+    fail("{}:{}: {} holds a second document (after '---'); a file holds one document: remove the separator or "
+         "split the file",
+         name, line, what);
+  }
+  if (docs.empty()) return YAML::Node();
+  StrictWalk{name, what}.walk(docs[0], 0);
+  return docs[0];
+}
+
+YAML::Node load_yaml_file_strict(const std::string& path, const std::string& what) {
+  std::error_code ec;
+  if (!fs::exists(path, ec)) fail("{} file '{}' does not exist", what, path);
+  if (fs::is_directory(path, ec)) fail("'{}' is a directory, not a {} file; give the path of a .yaml file", path, what);
+  std::ifstream in(path, std::ios::binary);
+  if (!in) fail("{} file '{}' cannot be read (permission denied?)", what, path);
+  std::stringstream ss;
+  ss << in.rdbuf();
+  return parse_yaml_strict(ss.str(), path, what);
+}
 
 // ---------------------------------------------------------------- helpers
 
@@ -171,12 +265,12 @@ void merge_into(YAML::Node dst, const YAML::Node& src, const std::string& path,
 }
 
 YAML::Node load_yaml_file(const fs::path& file) {
-  if (!fs::exists(file)) fail("config file '{}' does not exist", file.string());
-  try {
-    return YAML::LoadFile(file.string());
-  } catch (const YAML::Exception& e) {
-    fail("{}:{}:{}: malformed YAML: {}", file.string(), e.mark.line + 1, e.mark.column + 1, e.msg);
-  }
+  std::error_code ec;
+  if (!fs::exists(file, ec)) fail("config file '{}' does not exist", file.string());
+  if (fs::is_directory(file, ec))
+    fail("config '{}' is a directory; give the path of a .yaml file (e.g. {}/<name>.yaml)", file.string(),
+         file.string());
+  return load_yaml_file_strict(file.string(), "YAML");
 }
 
 fs::path find_config_root(const fs::path& file) {
@@ -207,7 +301,7 @@ struct Composer {
     YAML::Node own = YAML::Clone(raw);
     YAML::Node defaults;
     if (own["defaults"]) {
-      defaults = own["defaults"];
+      defaults = raw["defaults"];  // not the clone: clones lose line marks
       own.remove("defaults");
       if (!defaults.IsSequence())
         fail("{}: 'defaults' must be a list like [model: flow_tiny, _self_]", name);
@@ -235,6 +329,9 @@ struct Composer {
         std::string group = kv.first.as<std::string>();
         groups_seen.insert(group);
         if (kv.second.IsNull()) continue;
+        if (!kv.second.IsScalar())
+          fail("{}:{}: defaults entry '{}' names a {} instead of one config name; write '{}: <name>'", name,
+               kv.second.Mark().line + 1, group, kv.second.IsSequence() ? "list" : "mapping", group);
         std::string choice = kv.second.as<std::string>();
         if (auto it = group_swaps.find(group); it != group_swaps.end()) choice = it->second;
         fs::path f = with_yaml_ext(root / group / choice);
@@ -271,7 +368,7 @@ struct Composer {
         }
         merge_into(out.node, wrapped, "", wrapped_origin, "", out.origin);
       } else {
-        fail("{}: defaults entries must be 'group: name', a file name, or _self_", name);
+        fail("{}:{}: defaults entries must be 'group: name', a file name, or _self_", name, entry.Mark().line + 1);
       }
     }
     if (!self_done) merge_self();
@@ -296,7 +393,7 @@ void apply_override(ConfigSource& src, const std::string& ov) {
   std::string key = ov.substr(0, eq), text = ov.substr(eq + 1);
   YAML::Node value;
   try {
-    value = text.empty() ? YAML::Node(std::string()) : YAML::Load(text);
+    value = text.empty() ? YAML::Node(std::string()) : parse_yaml_strict(text, fmt::format("override '{}'", ov), "value");
   } catch (const YAML::Exception& e) {
     fail("override '{}': value is not valid YAML: {}", ov, e.msg);
   }
@@ -365,12 +462,7 @@ ConfigSource config_from_string(const std::string& yaml, const std::string& name
                                 const std::vector<std::string>& overrides) {
   Composer c;
   c.root = fs::current_path() / "configs";
-  YAML::Node raw;
-  try {
-    raw = YAML::Load(yaml);
-  } catch (const YAML::Exception& e) {
-    fail("{}:{}:{}: malformed YAML: {}", name, e.mark.line + 1, e.mark.column + 1, e.msg);
-  }
+  YAML::Node raw = parse_yaml_strict(yaml, name, "YAML");
   return finish(c, raw, name, fs::current_path(), overrides);
 }
 

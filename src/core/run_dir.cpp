@@ -61,7 +61,14 @@ void MetricsCsv::truncate_after(int64_t step) {
       continue;
     }
     if (line.empty()) continue;
-    int64_t s = std::stoll(line.substr(0, line.find(',')));
+    int64_t s = 0;
+    try {
+      s = std::stoll(line.substr(0, line.find(',')));
+    } catch (const std::exception&) {
+      fail("{}: row '{}' does not start with a step number; delete the run directory (or run.force=true) to "
+           "train it again",
+           path_.string(), line.substr(0, 80));
+    }
     if (s <= step) out += line + "\n";
   }
   write_file_atomic(path_, out);

@@ -16,6 +16,8 @@
 
 #include "core/atomic_file.h"
 #include "core/error.h"
+#include "core/h5_seal.h"
+#include "core/isolated.h"
 
 namespace mc {
 namespace {
@@ -118,6 +120,8 @@ class Writer {
     // set differ; the only time in the file is provenance.created.
     Handle fcpl(H5Pcreate(H5P_FILE_CREATE), H5Pclose);
     check(fcpl.valid() && H5Pset_obj_track_times(fcpl.get(), false) >= 0, "file creation properties");
+    // The user block holds the checksum seal (core/h5_seal.h), written after closing.
+    check(H5Pset_userblock(fcpl.get(), kH5SealBlock) >= 0, "the user block for the checksum");
     file_ = Handle(H5Fcreate(tmp.c_str(), H5F_ACC_TRUNC, fcpl.get(), H5P_DEFAULT), H5Fclose);
     check(file_.valid(), "creating the file");
     str_ = utf8_string_type();
@@ -192,7 +196,22 @@ class Writer {
 
 class Reader {
  public:
-  Reader(hid_t file, std::string path) : file_(file), path_(std::move(path)) {}
+  Reader(hid_t file, std::string path) : file_(file), path_(std::move(path)) {
+    std::error_code ec;
+    file_size_ = fs::file_size(path_, ec);
+  }
+
+  // A damaged shape can claim petabytes; refuse what the file cannot hold before
+  // allocating for it. gzip expands at most ~1032x, so 1100x the file size bounds
+  // any dataset an intact file holds.
+  void check_size(const std::string& name, const std::vector<hsize_t>& dims, size_t elem_bytes) const {
+    long double bytes = elem_bytes;
+    for (auto n : dims) bytes *= static_cast<long double>(n);
+    if (bytes > 1100.0L * static_cast<long double>(file_size_) + (1 << 20))
+      bad(fmt::format("dataset '{}' has shape {} ({:.3g} GB in memory), more than a {}-byte file can hold", name,
+                      join_dims(dims), static_cast<double>(bytes / 1e9), file_size_),
+          kCorrupt);
+  }
 
   // True when every component of the slash-separated `name` exists.
   bool exists(const std::string& name) const {
@@ -242,6 +261,7 @@ class Reader {
     expect_class(d.get(), name, cls);
     auto dims = shape(d.get(), name);
     expect_shape(name, dims, expected);
+    check_size(name, dims, sizeof(T));
     size_t count = 1;
     for (auto n : dims) count *= n;
     std::vector<T> out(count);
@@ -257,6 +277,7 @@ class Reader {
     expect_class(d.get(), name, H5T_STRING);
     auto dims = shape(d.get(), name);
     expect_shape(name, dims, {expected_n});
+    check_size(name, dims, sizeof(std::string) + sizeof(char*));
     Handle ftype(H5Dget_type(d.get()), H5Tclose);
     std::vector<std::string> out(dims[0]);
     if (dims[0] == 0) return out;
@@ -270,6 +291,7 @@ class Reader {
       H5Dvlen_reclaim(mtype.get(), space.get(), H5P_DEFAULT, ptrs.data());
     } else {
       size_t width = H5Tget_size(ftype.get());
+      check_size(name, dims, width);
       Handle mtype(H5Tcopy(H5T_C_S1), H5Tclose);
       H5Tset_size(mtype.get(), width);
       H5Tset_strpad(mtype.get(), H5T_STR_NULLPAD);
@@ -296,6 +318,8 @@ class Reader {
       return s;
     }
     size_t width = H5Tget_size(ftype.get());
+    if (width > file_size_)
+      bad(fmt::format("{} claims {} bytes, more than the file holds", attr_label(obj, name), width), kCorrupt);
     std::vector<char> buf(width + 1, '\0');
     Handle mtype(H5Tcopy(H5T_C_S1), H5Tclose);
     H5Tset_size(mtype.get(), width);
@@ -367,6 +391,7 @@ class Reader {
   static constexpr const char* kFix = "see docs/formats.md for the motion file layout and re-export the file";
   hid_t file_;
   std::string path_;
+  uintmax_t file_size_ = 0;
 };
 
 void write_skeleton(Writer& w, const Skeleton& s) {
@@ -591,18 +616,15 @@ void write_motion_file(const std::string& path, const MotionSet& m, const std::f
     if (extra) extra(root);
     w.close();
   }
+  seal_h5_file(out.tmp_path().string(), fmt::format("motion file '{}'", path));
   out.commit();
 }
 
-MotionSet read_motion_file(const std::string& path) {
-  std::error_code ec;
-  if (!fs::exists(path, ec))
-    fail("motion file '{}' does not exist; check the path (datasets come from `motionctl fixture` or "
-         "tools/humanml3d_to_h5.py)",
-         path);
-  if (fs::is_directory(path, ec)) fail("motion file '{}' is a directory; give the path of an .h5 file", path);
-  if (!std::ifstream(path)) fail("motion file '{}' cannot be read (permission denied?)", path);
+namespace {
 
+// The read proper; read_motion_file checks the seal first and runs this under
+// crash isolation when the file has none.
+MotionSet read_motion_file_unchecked(const std::string& path) {
   QuietHdf5 quiet;
   if (H5Fis_hdf5(path.c_str()) <= 0) {
     H5Eclear2(H5E_DEFAULT);
@@ -706,6 +728,26 @@ MotionSet read_motion_file(const std::string& path) {
 
   m.check(fmt::format("motion file '{}'", path));
   return m;
+}
+
+}  // namespace
+
+MotionSet read_motion_file(const std::string& path) {
+  std::error_code ec;
+  if (!fs::exists(path, ec))
+    fail("motion file '{}' does not exist; check the path (datasets come from `motionctl fixture` or "
+         "tools/humanml3d_to_h5.py)",
+         path);
+  if (fs::is_directory(path, ec)) fail("motion file '{}' is a directory; give the path of an .h5 file", path);
+  if (!std::ifstream(path)) fail("motion file '{}' cannot be read (permission denied?)", path);
+  // A sealed file whose checksum matches is exactly what a motionctl writer produced,
+  // so libhdf5 can read it safely; an unsealed one (older, or written by other
+  // tools) is read once in a child process first, so a crash inside libhdf5 on a
+  // damaged file becomes an error message instead of taking this process down.
+  const std::string what = fmt::format("motion file '{}'", path);
+  if (check_h5_seal(path, "motion file") == H5Seal::absent)
+    isolated_probe(what, [&] { read_motion_file_unchecked(path); });
+  return read_motion_file_unchecked(path);
 }
 
 }  // namespace mc

@@ -8,6 +8,7 @@
 #include "core/atomic_file.h"
 #include "core/config.h"
 #include "core/error.h"
+#include "core/yaml_strict.h"
 #include "core/source_dir.h"
 
 namespace mc {
@@ -107,12 +108,7 @@ bool Skeleton::operator==(const Skeleton& o) const {
 }
 
 Skeleton skeleton_from_yaml_text(const std::string& text, const std::string& source) {
-  YAML::Node root;
-  try {
-    root = YAML::Load(text);
-  } catch (const YAML::Exception& e) {
-    fail("{}:{}: malformed skeleton YAML: {}", source, e.mark.line + 1, e.msg);
-  }
+  YAML::Node root = parse_yaml_strict(text, source, "skeleton YAML");
   Skeleton s;
   try {
     if (!root.IsMap() || !root["joints"] || !root["joints"].IsSequence())

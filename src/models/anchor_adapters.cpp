@@ -542,7 +542,7 @@ LoadedAnchorAdapter load_anchor_adapter(const std::string& run_dir, torch::Devic
     torch::serialize::InputArchive ar;
     ar.load_from(final_pt.string());
     out.module->load(ar);
-  } catch (const c10::Error&) {
+  } catch (const std::exception&) {  // c10::Error, or torch::jit::ErrorReport on a damaged file
     fail("anchor adapter checkpoint '{}' is unreadable or does not match its config.yaml", final_pt.string());
   }
   out.module->to(device);

@@ -153,7 +153,7 @@ FlowControlNet FlowControlNet::load(const std::string& run_dir, torch::Device de
     torch::serialize::InputArchive ar;
     ar.load_from(final_pt.string());
     (*n.branch_)->load(ar);
-  } catch (const c10::Error&) {
+  } catch (const std::exception&) {  // c10::Error, or torch::jit::ErrorReport on a damaged file
     fail("ControlNet checkpoint '{}' is unreadable or does not match its base prior '{}'", final_pt.string(),
          base_run);
   }

@@ -214,6 +214,9 @@ void load_text_clip_encoder(const TextClipRun& run, torch::nn::Module& enc, cons
   } catch (const c10::Error& e) {
     fail("{}: cannot read the text encoder from '{}' ({})", what, final_pt.string(),
          std::string(e.what_without_backtrace()).substr(0, 200));
+  } catch (const std::exception& e) {  // torch::jit::ErrorReport on a damaged file
+    fail("{}: cannot read the text encoder from '{}' ({})", what, final_pt.string(),
+         std::string(e.what()).substr(0, 200));
   }
 }
 

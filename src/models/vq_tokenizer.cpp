@@ -601,6 +601,9 @@ LoadedVqTokenizer load_vq_tokenizer(const std::string& run_dir, torch::Device de
   } catch (const c10::Error& e) {
     fail("tokenizer checkpoint '{}' is unreadable or does not match its config.yaml ({})", final_pt.string(),
          std::string(e.what_without_backtrace()).substr(0, 200));
+  } catch (const std::exception& e) {  // torch::jit::ErrorReport on a damaged file
+    fail("tokenizer checkpoint '{}' is unreadable or does not match its config.yaml ({})", final_pt.string(),
+         std::string(e.what()).substr(0, 200));
   }
   out.model->to(device);
   out.model->eval();

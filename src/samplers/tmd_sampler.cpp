@@ -65,7 +65,7 @@ TokenPrior TokenPrior::load(const std::string& run_dir, torch::Device device) {
     torch::serialize::InputArchive ar;
     ar.load_from(final_pt.string());
     (*p.net_)->load(ar);
-  } catch (const c10::Error&) {
+  } catch (const std::exception&) {  // c10::Error, or torch::jit::ErrorReport on a damaged file
     fail("token prior checkpoint '{}' is unreadable or does not match its config.yaml", final_pt.string());
   }
   (*p.net_)->to(device);

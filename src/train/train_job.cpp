@@ -9,6 +9,7 @@
 #include "core/error.h"
 #include "data/fixture/fixture_build.h"
 #include "train/pretrained.h"
+#include "train/train_resources.h"
 
 #include <iostream>
 
@@ -103,6 +104,7 @@ TrainResult run_train(const std::string& requested, const std::vector<std::strin
   const std::vector<std::string> overrides = with_runs_root(given);
   auto job = load_job<TrainJobConfig>(file, overrides);
   RunsRootScope components_root(job.run.root);  // the runs its model trains go beside it
+  check_train_resources(job);  // sizes and threads this machine cannot give: exit 2 before any work
   ensure_training_data(job);
   std::string name = default_run_name(file, job);
   // A component shipped in pretrained/ under this run's name and with this config

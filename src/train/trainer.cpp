@@ -13,6 +13,7 @@
 #include <sstream>
 #include <thread>
 
+#include "core/resources.h"
 #include "core/atomic_file.h"
 #include "core/error.h"
 #include "core/interrupt.h"
@@ -56,6 +57,7 @@ double scheduled_lr(const OptimConfig& o, int64_t step) {
 }
 
 torch::Device setup_torch(const RunConfig& run) {
+  check_thread_count(run.threads, "run.threads");  // thousands of threads stall the machine (core/resources.h)
   // 0 = all cores, unless OMP_NUM_THREADS says otherwise (ctest runs tests in
   // parallel with OMP_NUM_THREADS=1: oversubscribed cores make torch ~50x slower).
   int threads = run.threads;

@@ -10,6 +10,7 @@
 
 #include "core/atomic_file.h"
 #include "core/error.h"
+#include "core/h5_seal.h"
 #include "data/motion_set.h"
 #include "data_test_util.h"
 
@@ -56,11 +57,17 @@ std::vector<char> file_bytes(const std::string& path) {
 
 // Opens a written file read-write so a test can damage one dataset the way a
 // buggy external writer would.
+// Edits a written file in place, then re-seals it (core/h5_seal.h) so the reader
+// gets past the checksum to the defect under test.
 struct H5Patch {
-  explicit H5Patch(const std::string& path) : file(H5Fopen(path.c_str(), H5F_ACC_RDWR, H5P_DEFAULT)) {
+  explicit H5Patch(const std::string& p) : path(p), file(H5Fopen(p.c_str(), H5F_ACC_RDWR, H5P_DEFAULT)) {
     REQUIRE(file >= 0);
   }
-  ~H5Patch() { H5Fclose(file); }
+  ~H5Patch() {
+    H5Fclose(file);
+    seal_h5_file(path, "patched test file");
+  }
+  std::string path;
   void replace_float_dataset(const char* name, const std::vector<hsize_t>& dims, const std::vector<float>& data) {
     REQUIRE(H5Ldelete(file, name, H5P_DEFAULT) >= 0);
     hid_t space = H5Screate_simple(static_cast<int>(dims.size()), dims.data(), nullptr);
@@ -290,6 +297,7 @@ TEST_CASE("a skeleton without the yaml attribute is rebuilt from its datasets", 
   hid_t f = H5Fopen(dir.file("set.h5").c_str(), H5F_ACC_RDWR, H5P_DEFAULT);
   REQUIRE(H5Adelete_by_name(f, "skeleton", "yaml", H5P_DEFAULT) >= 0);
   H5Fclose(f);
+  seal_h5_file(dir.file("set.h5"), "edited test file");  // edited on purpose
   MotionSet back = read_motion_file(dir.file("set.h5"));
   CHECK(back.skeleton.name == "humanml3d22");
   CHECK(back.skeleton.joint_names == m.skeleton.joint_names);

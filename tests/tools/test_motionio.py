@@ -108,6 +108,7 @@ class Validation(unittest.TestCase):
     def broken(self, edit, *expected_words):
         with h5py.File(self.path, "a") as f:
             edit(f)
+        motionio.seal_h5_file(self.path)  # edited in place on purpose: re-seal
         with self.assertRaises(MotionFileError) as ctx:
             motionio.read_motion(self.path)
         msg = str(ctx.exception)
@@ -140,6 +141,7 @@ class Validation(unittest.TestCase):
         self.broken(lambda f: self.replace(f, "lengths", np.array([12, 13, 9], np.int32)), "'lengths'")
         with h5py.File(self.path, "a") as f:
             self.replace(f, "lengths", np.array([12, 0, 9], np.int32))
+        motionio.seal_h5_file(self.path)  # edited in place on purpose: re-seal
         self.assertRaises(MotionFileError, motionio.read_motion, self.path)
 
     def test_ids_unique(self):
@@ -159,6 +161,7 @@ class Validation(unittest.TestCase):
             f.attrs["format_version"] = np.array([1], np.int32)
             f.attrs["format"] = np.bytes_(b"motionctl.motion")
             f["provenance"].attrs["seed"] = np.array([7], np.int64)
+        motionio.seal_h5_file(self.path)  # edited in place on purpose: re-seal
         m = motionio.read_motion(self.path)
         self.assertEqual((m.fps, m.provenance["seed"]), (25.0, 7))
 
@@ -199,6 +202,34 @@ class AtomicWrite(unittest.TestCase):
                 motionio.write_motion(path, **d)
             self.assertEqual(read_bytes(path), before)
             self.assertEqual(os.listdir(tmp), ["m.h5"])
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+class Seal(unittest.TestCase):
+    """The checksum seal in the user block (docs/formats.md): any changed byte is refused."""
+
+    def test_changed_byte_truncation_and_unsealed(self):
+        tmp = tempfile.mkdtemp(prefix="motionio_seal_")
+        try:
+            path = os.path.join(tmp, "m.h5")
+            motionio.write_motion(path, **sample_data(np.random.default_rng(4)))
+            good = read_bytes(path)
+            self.assertTrue(good.startswith(motionio.SEAL_MAGIC))
+            self.assertTrue(motionio.check_h5_seal(path))
+            for pos in (600, len(good) // 2, len(good) - 1):
+                bad = bytearray(good)
+                bad[pos] ^= 0x20
+                with open(path, "wb") as f:
+                    f.write(bad)
+                self.assertRaisesRegex(MotionFileError, "damaged", motionio.read_motion, path)
+            with open(path, "wb") as f:
+                f.write(good[:-5])
+            self.assertRaisesRegex(MotionFileError, "truncated", motionio.read_motion, path)
+            with open(path, "wb") as f:  # no seal: read as an older file
+                f.write(bytes(motionio.SEAL_BLOCK) + good[motionio.SEAL_BLOCK:])
+            self.assertFalse(motionio.check_h5_seal(path))
+            self.assertEqual(len(motionio.read_motion(path).ids), 3)
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
 
