@@ -54,4 +54,18 @@ struct TrainBenchOptions {
 // One training step's time, FLOPs and FLOP rate against sgemm; prints a table to `out`.
 void bench_train(const TrainBenchOptions& o, std::ostream& out);
 
+struct AnchorrouteBenchOptions {
+  std::string generator = "experiments/generators/anchorroute.yaml";  // an anchorroute generator file
+  std::vector<std::string> overrides;                                 // generator.* overrides of it
+  std::string protocol = "experiments/protocols/anchors_all.yaml";
+  std::string data = "data/fixture_smoke.h5";
+  std::string fixture = "configs/data/smoke.yaml";  // builds `data` when it is missing
+  int samples = 8;                                   // first test clips
+  std::vector<int> route_steps = {100, 200, 500};
+  int repeats = 1;                                   // the fastest of N runs per row
+};
+// Table VII in one run: generator-only time per sample, RSk cost ratios, and the
+// generator's split into network calls and decoding beside one RouteSolver step.
+void bench_anchorroute(const AnchorrouteBenchOptions& o, std::ostream& out);
+
 }  // namespace mc

@@ -54,6 +54,26 @@ void add_bench_command(CLI::App& app) {
     bench_projflow(*po, std::cout);
   });
 
+  auto* ar = cmd->add_subcommand("anchorroute", "AnchorRoute (Table VII): generator-only time per sample, "
+                                                "RS100/RS200/RS500 cost ratios, generator vs decoder split");
+  auto ao = std::make_shared<AnchorrouteBenchOptions>();
+  auto athreads = std::make_shared<int>(1);
+  ar->add_option("--generator", ao->generator, "anchorroute generator file (its adapter is trained or installed "
+                                               "from pretrained/ on first use)");
+  ar->add_option("--set", ao->overrides, "generator.* overrides, e.g. generator.sampler.steps=20");
+  ar->add_option("--protocol", ao->protocol, "protocol file of the tasks");
+  ar->add_option("--data", ao->data, "motion file whose first test clips give the tasks");
+  ar->add_option("--samples", ao->samples, "tasks (first test clips)")->check(CLI::Range(1, 10000));
+  ar->add_option("--route-steps", ao->route_steps, "RouteSolver step counts")->check(CLI::Range(1, 100000));
+  ar->add_option("--repeats", ao->repeats, "runs per row; the fastest counts")->check(CLI::Range(1, 100));
+  ar->add_option("--threads", *athreads, "torch threads (0 = all cores; default 1 as the tables)")
+      ->check(CLI::NonNegativeNumber);
+  ar->callback([ao, athreads] {
+    torch::set_num_threads(*athreads > 0 ? *athreads
+                                         : static_cast<int>(std::max(1u, std::thread::hardware_concurrency())));
+    bench_anchorroute(*ao, std::cout);
+  });
+
   auto* tr = cmd->add_subcommand("train", "one training step: time, FLOPs, FLOP rate as a fraction of sgemm's; "
                                           "whole-clip configs also padded to t_max (the cost of padding)");
   auto to = std::make_shared<TrainBenchOptions>();

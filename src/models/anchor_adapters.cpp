@@ -7,6 +7,7 @@
 #include <yaml-cpp/yaml.h>
 
 #include <cmath>
+#include <limits>
 #include <random>
 
 #include "core/atomic_file.h"
@@ -25,6 +26,29 @@ namespace nn = torch::nn;
 namespace F = torch::nn::functional;
 
 // ---------------------------------------------------------------- config
+
+void AnchorKvMemoryConfig::visit(FieldVisitor& v) {
+  v("normaliser", normaliser,
+    "softmax normaliser of AnchorKV's appended memory: joint (eq. (15): one softmax over the block's keys and "
+    "the memory; the memory takes attention mass from the frozen block even at initialisation) or own (the "
+    "block's own keys only: its attention stays as trained and the memory adds exp(score - LSE_own) V^s, so an "
+    "untrained adapter is the identity)",
+    one_of({"joint", "own"}));
+  v("window", window,
+    "token-aligned memory: token n attends to memory slots |n - m| <= window only (-1 = every slot, eq. (15) "
+    "as written)",
+    at_least(-1));
+}
+
+void AdapterTrainingConfig::visit(FieldVisitor& v) {
+  v("t_power", t_power,
+    "training times t = u^t_power, u ~ U[0, 1) (1 = uniform as eq. (19); 2-3 put most draws at low, noisy t "
+    "where the frozen prior knows least and anchors help most)",
+    in_range(0.1, 10.0));
+  v("zero_features", zero_features,
+    "audit twin: train (and validate) with all-zero adapter features, i.e. no anchor information; with the same "
+    "seed it draws the same batches, times and anchors as its real-feature twin");
+}
 
 void AnchorAdapterConfig::visit(FieldVisitor& v) {
   v("adapter", adapter, "condition path: anchorkv (eqs. (14)-(15)), cross_attention or controlnet (Table IV baselines)",
@@ -47,6 +71,9 @@ void AnchorAdapterConfig::visit(FieldVisitor& v) {
     "probability that a training clip gets Table II's six-point set (all body_joints at the same frames)",
     in_range(0.0, 1.0));
   v("sparse_keyjoint_ratio", sparse_keyjoint_ratio, "fraction of frames of a six-point set", in_range(1e-6, 1.0));
+  v("anchorkv", anchorkv, "AnchorKV's memory attention (defaults: eq. (15) as written)");
+  v("training", training, "where controlled training spends its signal, and the zeroed-feature audit twin "
+    "(defaults: uniform t, real features)");
   v("lambda_anc", lambda_anc, "lambda_anc of eq. (16) (0 = CE only, Table IV 'without anchor loss')", at_least(0.0));
   v("delta", delta, "support radius delta of eqs. (7)-(10), frames", in_range(0, 50));
   v("cond_drop", cond_drop, "probability of the null text during adapter training (keeps CFG usable)",
@@ -188,14 +215,15 @@ torch::Tensor ScaffoldEncoderImpl::forward(const torch::Tensor& features, const 
 
 AnchorKVAdapterImpl::AnchorKVAdapterImpl(const AnchorAdapterConfig& c, const TokenTransformerOptions& o,
                                          int64_t stride, int64_t feature_width)
-    : heads(o.heads), head_dim(o.head_dim()), rope_base(o.rope_base) {
+    : heads(o.heads), head_dim(o.head_dim()), rope_base(o.rope_base), memory(c.anchorkv) {
   const int64_t ds = resolved_memory_width(c, o), r = c.rank, d = o.width;
   scaffold = register_module(
       "scaffold", ScaffoldEncoder(feature_width, ds, stride, c.encoder_blocks, c.dual_context, o.text_dim, c.heads));
   for (int64_t l = 0; l < o.depth; ++l) {
     P.push_back(register_parameter(fmt::format("P{}", l), torch::randn({ds, r}) / std::sqrt(double(ds))));
     UK.push_back(register_parameter(fmt::format("UK{}", l), torch::randn({r, d}) / std::sqrt(double(r))));
-    // Zero values: at initialisation the memory adds no content (it only takes attention mass).
+    // Zero values: at initialisation the memory adds no content (with the joint
+    // normaliser of eq. (15) it still takes attention mass; with `own` it is the identity).
     UV.push_back(register_parameter(fmt::format("UV{}", l), torch::zeros({r, d})));
   }
 }
@@ -204,14 +232,22 @@ TokenTransformerHooks AnchorKVAdapterImpl::hooks(const AdapterInputs& in) {
   auto Hs = scaffold(in.features, in.text);  // [B, L, d_s]
   const int64_t B = Hs.size(0), L = Hs.size(1);
   auto pos = torch::arange(L, torch::TensorOptions().dtype(torch::kFloat32).device(Hs.device()));
+  torch::Tensor bias;  // token-aligned window: slot m is visible to token n iff |n - m| <= window
+  if (memory.window >= 0) {
+    auto d = (pos.unsqueeze(1) - pos.unsqueeze(0)).abs();
+    bias = torch::zeros({L, L}, Hs.options()).masked_fill(d > memory.window, -std::numeric_limits<float>::infinity());
+  }
   TokenTransformerHooks h;
   for (size_t l = 0; l < P.size(); ++l) {
     auto low = torch::matmul(Hs, P[l]);                         // H^s P_l
     auto k = torch::matmul(low, UK[l]), v = torch::matmul(low, UV[l]);  // eq. (14)
     // RoPE at the memory slot's token index: the backbone's queries carry RoPE, so
-    // <q_n, K^s_m> depends on n - m and token n can pick out its own slot.
+    // <q_n, K^s_m> depends on n - m.
     k = apply_rope(k.view({B, L, heads, head_dim}).transpose(1, 2), pos, rope_base).transpose(1, 2).reshape({B, L, -1});
-    h.extra_kv.push_back({k, v, in.valid});  // eq. (15)
+    LayerKV kv{k, v, in.valid};  // eq. (15)
+    kv.bias = bias;
+    kv.own_normaliser = memory.normaliser == "own";
+    h.extra_kv.push_back(kv);
   }
   return h;
 }
@@ -369,38 +405,57 @@ class AnchorAdapterTrainer : public Trainable {
     }
     const int64_t B = idx.size();
     auto t = torch::rand({B});
+    if (cfg_.training.t_power != 1.0) t = t.pow(cfg_.training.t_power);  // low-t emphasis
     auto drop = torch::rand({B}) < cfg_.cond_drop;
-    auto r = controlled_loss(idx, caps, sets, t, drop, nullptr);
+    auto r = controlled_loss(idx, caps, sets, t, drop, nullptr, cfg_.training.zero_features);
     LossOutput out;
     out.loss = cfg_.lambda_anc > 0 ? r.ce + cfg_.lambda_anc * r.anc : r.ce;  // eq. (16)
     out.parts = {{"ce", r.ce.detach()}, {"anc", r.anc.detach()}, {"ctrl_err", r.ctrl}};
     return out;
   }
 
-  // Validation CE and soft-decoded anchor error at t = 0.5 with fixed draws.
+  // Validation CE and soft-decoded anchor error with fixed draws (the same clips, anchors,
+  // captions and corruption at every call): at t = 0.5, and at t = 0.1 (mostly noise, where
+  // anchors should matter most) with the real and with zeroed adapter features. The gap
+  // between the last two is what the adapter takes from the anchors.
   std::map<std::string, double> evaluate() override {
     torch::NoGradGuard ng;
     adapter_->eval();
     auto idx = ctx_.data->split("val");
     const MotionSet& set = ctx_.data->set();
-    auto gen = at::make_generator<at::CPUGeneratorImpl>(20240611);
-    double ce = 0, ctrl = 0, n = 0;
-    for (size_t s = 0; s < idx.size(); s += 32) {
-      std::vector<int64_t> chunk(idx.begin() + s, idx.begin() + std::min(idx.size(), s + 32));
-      std::vector<std::string> caps;
-      std::vector<AnchorSet> sets;
-      for (int64_t i : chunk) {
-        caps.push_back(set.captions[i][0]);
-        sets.push_back(draw_training_set(i, static_cast<int64_t>(i) * 7919 + 17));
+    struct Acc {
+      double ce = 0, ctrl = 0, n = 0;
+    };
+    auto pass = [&](double t, bool zero_features) {
+      auto gen = at::make_generator<at::CPUGeneratorImpl>(20240611);
+      Acc a;
+      for (size_t s = 0; s < idx.size(); s += 32) {
+        std::vector<int64_t> chunk(idx.begin() + s, idx.begin() + std::min(idx.size(), s + 32));
+        std::vector<std::string> caps;
+        std::vector<AnchorSet> sets;
+        for (int64_t i : chunk) {
+          caps.push_back(set.captions[i][0]);
+          sets.push_back(draw_training_set(i, static_cast<int64_t>(i) * 7919 + 17));
+        }
+        const int64_t B = chunk.size();
+        auto r = controlled_loss(chunk, caps, sets, torch::full({B}, t), torch::zeros({B}, torch::kBool), &gen,
+                                 zero_features);
+        a.ce += r.ce.item<double>() * B;
+        a.ctrl += r.ctrl.item<double>() * B;
+        a.n += B;
       }
-      const int64_t B = chunk.size();
-      auto r = controlled_loss(chunk, caps, sets, torch::full({B}, 0.5), torch::zeros({B}, torch::kBool), &gen);
-      ce += r.ce.item<double>() * B;
-      ctrl += r.ctrl.item<double>() * B;
-      n += B;
-    }
+      a.n = std::max(1.0, a.n);
+      return a;
+    };
+    const bool z = cfg_.training.zero_features;
+    auto mid = pass(0.5, z), low = pass(0.1, z), low0 = pass(0.1, true);
     adapter_->train();
-    return {{"val_ce", ce / std::max(1.0, n)}, {"val_soft_control_error", ctrl / std::max(1.0, n)},
+    return {{"val_ce", mid.ce / mid.n},
+            {"val_soft_control_error", mid.ctrl / mid.n},
+            {"val_ce_t01", low.ce / low.n},
+            {"val_soft_control_error_t01", low.ctrl / low.n},
+            {"val_ce_t01_zeroed", low0.ce / low0.n},
+            {"val_soft_control_error_t01_zeroed", low0.ctrl / low0.n},
             {"adapter_parameters", static_cast<double>(count_parameters(*adapter_))}};
   }
 
@@ -448,7 +503,7 @@ class AnchorAdapterTrainer : public Trainable {
 
   Losses controlled_loss(const std::vector<int64_t>& idx, const std::vector<std::string>& caps,
                          const std::vector<AnchorSet>& sets, const torch::Tensor& t, const torch::Tensor& drop,
-                         at::Generator* gen) {
+                         at::Generator* gen, bool zero_features = false) {
     const auto dev = ctx_.device;
     const auto& pc = prior_->tmd_config();
     const int64_t B = idx.size(), L = tokens_.size(1), Tp = L * stride_, K = prior_->codebook_size();
@@ -467,8 +522,9 @@ class AnchorAdapterTrainer : public Trainable {
       text = prior_->net()->drop_condition(text, drop.to(dev));
     }
     auto feats = torch::zeros({B, Tp, adapter_feature_width(cfg_.body_joints)});
-    for (int64_t b = 0; b < B; ++b)
-      feats[b].narrow(0, 0, sets[b].frames).copy_(adapter_features(sets[b], cfg_.body_joints));
+    if (!zero_features)
+      for (int64_t b = 0; b < B; ++b)
+        feats[b].narrow(0, 0, sets[b].frames).copy_(adapter_features(sets[b], cfg_.body_joints));
     AdapterInputs in{xin, tt, text, valid, feats.to(dev)};
     auto hooks = adapter_->hooks(in);
     auto logits = prior_->net()->transformer->forward(xin, tt, text, valid, &hooks).logits;  // [B, L, K]

@@ -16,6 +16,27 @@ namespace mc {
 
 class TokenPrior;
 
+// AnchorKV's memory attention (issue 15). The defaults are eq. (15) as written (one
+// softmax over [K; K^s], every token sees every memory slot) and are left out of the
+// dumped config, so runs trained before these switches keep their names and hashes.
+// Deviations and the evidence behind them: docs/choices.md ("AnchorRoute: adapters").
+struct AnchorKvMemoryConfig : Config {
+  std::string normaliser = "joint";  // joint: eq. (15) | own: the block's own normaliser (identity at init)
+  int window = -1;                   // -1: every slot (eq. (15)); w >= 0: token n sees slots |n - m| <= w
+  void visit(FieldVisitor& v) override;
+  bool paper() const { return normaliser == "joint" && window < 0; }
+  bool omitted_from_dump() const override { return paper(); }
+};
+
+// Where controlled training spends its signal, and an audit switch (issue 15). Defaults:
+// eq. (19)'s uniform t and the real features, left out of the dumped config.
+struct AdapterTrainingConfig : Config {
+  double t_power = 1.0;        // t = u^p, u ~ U[0, 1): p > 1 puts more draws at low (noisy) t
+  bool zero_features = false;  // audit twin: the adapter sees all-zero features (no anchor information)
+  void visit(FieldVisitor& v) override;
+  bool omitted_from_dump() const override { return t_power == 1.0 && !zero_features; }
+};
+
 // `model:` section of a controlled-training run (model.type = anchor_adapter).
 // Defaults and the readings behind them: docs/choices.md ("AnchorRoute: adapters").
 struct AnchorAdapterConfig : Config {
@@ -32,6 +53,8 @@ struct AnchorAdapterConfig : Config {
   std::vector<int> body_joints = {0, 10, 11, 15, 20, 21};
   double sparse_keyjoint_prob = 0.0;  // probability of a Table II six-point set instead
   double sparse_keyjoint_ratio = 0.3;
+  AnchorKvMemoryConfig anchorkv;
+  AdapterTrainingConfig training;
   // eq. (16)
   double lambda_anc = 0.3;
   int delta = 2;
@@ -92,8 +115,11 @@ struct AnchorAdapterModule : torch::nn::Module {
 };
 
 // AnchorKV, eqs. (14)-(15): per block K^s = H^s P U^K, V^s = H^s P U^V (rank r), appended to
-// the block's self-attention. The keys get RoPE at their token index so motion token n can
-// find memory slot n (the backbone's queries carry RoPE). U^V starts at zero.
+// the block's self-attention. The keys get RoPE at their token index (the backbone's
+// queries carry RoPE, so scores depend on n - m). U^V starts at zero. c.anchorkv picks
+// the normaliser (joint = eq. (15); own = the block's attention unchanged plus the
+// memory, so the untrained adapter is the identity) and the token-aligned window (token
+// n sees slots |n - m| <= w only, as a -inf score bias outside it).
 struct AnchorKVAdapterImpl : AnchorAdapterModule {
   AnchorKVAdapterImpl(const AnchorAdapterConfig& c, const TokenTransformerOptions& backbone, int64_t stride,
                       int64_t feature_width);
@@ -101,6 +127,7 @@ struct AnchorKVAdapterImpl : AnchorAdapterModule {
   std::vector<torch::Tensor> P, UK, UV;  // per block [d_s, r], [r, d], [r, d]
   int64_t heads, head_dim;
   double rope_base;
+  AnchorKvMemoryConfig memory;
 };
 TORCH_MODULE(AnchorKVAdapter);
 

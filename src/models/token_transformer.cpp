@@ -47,6 +47,35 @@ torch::Tensor attend(const torch::Tensor& q, const torch::Tensor& k, const torch
   return torch::matmul(a, v).transpose(1, 2).reshape({B, Lq, H * Dh});
 }
 
+// The block's own attention with extra key/value memory (eq. (15)): scores of the own
+// keys s [B, H, Lq, N] (padding masked) and of the memory sm [B, H, Lq, M] (+ bias,
+// masked). Joint: softmax over [s; sm] times [V; V^s]. Own normaliser: both exponentiated
+// against logsumexp(s) only, so the own part is the block's unchanged attention and
+// the memory adds sum_m exp(sm - lse) V^s_m (exponent clamped at 30 against overflow).
+torch::Tensor attend_with_memory(const torch::Tensor& q, const torch::Tensor& k, const torch::Tensor& v,
+                                 const torch::Tensor& key_valid, const torch::Tensor& mk, const torch::Tensor& mv,
+                                 const torch::Tensor& mem_valid, const torch::Tensor& bias, bool own_normaliser,
+                                 nn::Dropout& drop) {
+  const int64_t B = q.size(0), H = q.size(1), Lq = q.size(2), Dh = q.size(3), N = k.size(2), M = mk.size(2);
+  const double scale = 1.0 / std::sqrt(static_cast<double>(Dh));
+  auto s = (torch::matmul(q, k.transpose(-2, -1)) * scale).masked_fill(key_valid.logical_not().view({B, 1, 1, N}),
+                                                                      kNegInf);
+  auto sm = torch::matmul(q, mk.transpose(-2, -1)) * scale;  // [B, H, Lq, M]
+  if (bias.defined()) sm = sm + bias.view({1, 1, Lq, M});
+  sm = sm.masked_fill(mem_valid.logical_not().view({B, 1, 1, M}), kNegInf);
+  torch::Tensor out;
+  if (!own_normaliser) {
+    auto a = drop(torch::softmax(torch::cat({s, sm}, -1), -1));
+    out = torch::matmul(a, torch::cat({v, mv}, 2));
+  } else {
+    auto lse = torch::logsumexp(s, -1, true);
+    auto a = drop(torch::softmax(s, -1));  // bit-identical to the memory-free block
+    auto am = drop(torch::exp((sm - lse).clamp_max(30.0)));
+    out = torch::matmul(a, v) + torch::matmul(am, mv);
+  }
+  return out.transpose(1, 2).reshape({B, Lq, H * Dh});
+}
+
 }  // namespace
 
 // ---------------------------------------------------------------- attention
@@ -67,7 +96,7 @@ torch::Tensor TokenSelfAttentionImpl::forward(const torch::Tensor& x, const torc
   auto q = apply_rope(q_norm(qkv_[0]), positions, rope_base);
   auto k = apply_rope(k_norm(qkv_[1]), positions, rope_base);
   auto v = qkv_[2];
-  auto kv_valid = key_valid;
+  const auto& kv_valid = key_valid;
   if (extra && extra->defined()) {
     // eq. (15): softmax(Q [K; K^s]^T / sqrt(d)) [V; V^s], the memory after the block's own keys.
     const auto& ek = extra->k;
@@ -81,9 +110,12 @@ torch::Tensor TokenSelfAttentionImpl::forward(const torch::Tensor& x, const torc
                                     : torch::ones({B, M}, torch::TensorOptions().dtype(torch::kBool).device(x.device()));
     if (em.sizes() != torch::IntArrayRef({B, M}))
       fail("extra key/value mask must be [B={}, M={}], got {}", B, M, shape_of(em));
-    k = torch::cat({k, split_heads(ek.to(k.dtype()), heads, head_dim)}, 2);
-    v = torch::cat({v, split_heads(ev.to(v.dtype()), heads, head_dim)}, 2);
-    kv_valid = torch::cat({key_valid, em}, 1);
+    if (extra->bias.defined() && extra->bias.sizes() != torch::IntArrayRef({L, M}))
+      fail("extra key/value bias must be [L={}, M={}], got {}", L, M, shape_of(extra->bias));
+    return proj(attend_with_memory(q, k, v, kv_valid, split_heads(ek.to(k.dtype()), heads, head_dim),
+                                   split_heads(ev.to(v.dtype()), heads, head_dim), em,
+                                   extra->bias.defined() ? extra->bias.to(x.device(), k.dtype()) : torch::Tensor(),
+                                   extra->own_normaliser, attn_drop));
   }
   return proj(attend(q, k, v, kv_valid, attn_drop));
 }
@@ -201,6 +233,67 @@ TokenTransformerOutput TokenTransformerImpl::forward(const torch::Tensor& ids, c
   }
   auto m = final_ada(torch::silu(c)).chunk(2, -1);
   out.logits = head(modulate(final_norm(h), m[0], m[1]));
+  return out;
+}
+
+// ---------------------------------------------------------------- guidance
+
+torch::Tensor guided_token_logits(TokenTransformerImpl& net, const torch::Tensor& ids, const torch::Tensor& t,
+                                  const TextContext& text, const TextContext& null_text, const torch::Tensor& valid,
+                                  double cfg_scale, const TokenTransformerHooks* hooks) {
+  const HookGuidance g = hooks ? hooks->guidance : HookGuidance{};
+  const int64_t B = ids.size(0);
+  const auto dev = ids.device();
+  const bool third = hooks && g.scale != 1.0;
+  // Passes: (text, hooks), (null, hooks or none), [(text, none)].
+  std::vector<bool> on = {true, !hooks || g.in_uncond};
+  if (third) on.push_back(false);
+  const int64_t P = static_cast<int64_t>(on.size());
+  auto rep = [&](const torch::Tensor& x) {
+    if (!x.defined()) return x;
+    std::vector<torch::Tensor> parts(P, x);
+    return torch::cat(parts);
+  };
+  TokenTransformerHooks hp;
+  if (hooks) {
+    for (auto& kv : hooks->extra_kv) {
+      if (!kv.defined()) {
+        hp.extra_kv.push_back(kv);
+        continue;
+      }
+      const int64_t M = kv.k.size(1);
+      auto m = kv.mask.defined() ? kv.mask.to(dev, torch::kBool)
+                                 : torch::ones({B, M}, torch::TensorOptions().dtype(torch::kBool).device(dev));
+      std::vector<torch::Tensor> masks;
+      for (bool o : on) masks.push_back(o ? m : torch::zeros_like(m));
+      LayerKV r = kv;
+      r.k = rep(kv.k);
+      r.v = rep(kv.v);
+      r.mask = torch::cat(masks);
+      hp.extra_kv.push_back(r);  // bias has no batch dimension: shared
+    }
+    for (auto& res : hooks->block_residuals) {
+      if (!res.defined()) {
+        hp.block_residuals.push_back(res);
+        continue;
+      }
+      std::vector<torch::Tensor> parts;
+      for (bool o : on) parts.push_back(o ? res : torch::zeros_like(res));
+      hp.block_residuals.push_back(torch::cat(parts));
+    }
+  }
+  std::vector<torch::Tensor> tt(P, t), texts_p, texts_m, texts_v;
+  for (int64_t p = 0; p < P; ++p) {
+    const TextContext& c = p == 1 ? null_text : text;
+    texts_p.push_back(c.pooled);
+    texts_m.push_back(c.memory);
+    texts_v.push_back(c.memory_valid);
+  }
+  TextContext all{torch::cat(texts_p), torch::cat(texts_m), torch::cat(texts_v)};
+  auto l = net.forward(rep(ids), t.defined() ? torch::cat(tt) : t, all, rep(valid), hooks ? &hp : nullptr).logits;
+  auto lc = l.narrow(0, 0, B), lu = l.narrow(0, B, B);
+  auto out = lu + cfg_scale * (lc - lu);
+  if (third) out = out + (g.scale - 1.0) * (lc - l.narrow(0, 2 * B, B));
   return out;
 }
 

@@ -37,13 +37,27 @@ struct TextContext {
 // Extra attention memory for one block (AnchorKV, eq. (15)): keys and values already
 // projected to the block's attention space, [B, M, width] each (split into heads as
 // head h = channels [h*head_dim, (h+1)*head_dim)). They are appended to the block's
-// own keys/values as they are: no RoPE (memory has no position in the motion) and no
-// q/k RMS-norm (the block's own keys are per-head RMS-normalised times a learned
-// weight, so an adapter should produce keys of similar scale). mask [B, M] bool, true
-// = attend; undefined = all attend. M may be 0.
+// own keys/values as they are: no RoPE is added here (an adapter may rotate its keys
+// itself) and no q/k RMS-norm (the block's own keys are per-head RMS-normalised times a
+// learned weight, so an adapter should produce keys of similar scale). mask [B, M] bool,
+// true = attend; undefined = all attend. M may be 0.
+//   bias: optional additive score bias of the memory, [L, M] (query token x memory slot;
+//     -inf = never attend; no batch dimension), e.g. AnchorKV's token-aligned window.
+//   own_normaliser: false = eq. (15), one softmax over [K; K^s]; true = eq. (15)'s
+//     numerator over the normaliser of the block's own keys only, i.e. the block's own
+//     attention unchanged plus sum_m exp(s_nm - LSE_n(own)) V^s_m: zero memory values
+//     then leave the block exactly as it was (docs/choices.md, "AnchorRoute: adapters").
 struct LayerKV {
   torch::Tensor k, v, mask;
+  torch::Tensor bias;
+  bool own_normaliser = false;
   bool defined() const { return k.defined(); }
+};
+
+// How classifier-free guidance treats adapter hooks (AnchorRoute's anchors).
+struct HookGuidance {
+  bool in_uncond = true;  // the unconditional (null-text) pass gets the hooks too; false = the frozen prior's
+  double scale = 1.0;     // s_a; != 1 adds a pass (text, no hooks) and (s_a - 1)(l_cH - l_c0)
 };
 
 // Optional adapter hooks of one forward. Empty vectors = no hook; otherwise one entry
@@ -52,7 +66,10 @@ struct TokenTransformerHooks {
   std::vector<LayerKV> extra_kv;               // appended to block l's self-attention keys/values
   std::vector<torch::Tensor> block_residuals;  // [B, L, width] added to block l's output (ControlNet)
   bool collect_hidden = false;                 // fill TokenTransformerOutput::hidden
+  HookGuidance guidance;                       // read by guided_token_logits only
 };
+
+
 
 struct TokenTransformerOutput {
   torch::Tensor logits;               // [B, L, num_codes]
@@ -124,5 +141,17 @@ struct TokenTransformerImpl : torch::nn::Module {
   torch::nn::Linear head{nullptr};        // d -> K, zero-init
 };
 TORCH_MODULE(TokenTransformer);
+
+// Classifier-free guidance over one doubled (or tripled) forward of `net`:
+//   l = l_u + s (l_cH - l_u) + (s_a - 1)(l_cH - l_c0),
+// l_cH = (text, hooks), l_u = (null text, hooks if in_uncond else none), l_c0 = (text,
+// no hooks), the last term only when s_a != 1 (s_a, in_uncond: hooks->guidance) (ACMDM's three-pass control guidance with
+// the anchors as the control). "No hooks" rows have their memory masked out and zero
+// residuals, which is exactly the network without hooks. With the defaults it is the
+// two-pass l_u + s (l_cH - l_u), hooks in both halves. null_text: the null context of
+// the same B rows and memory width.
+torch::Tensor guided_token_logits(TokenTransformerImpl& net, const torch::Tensor& ids, const torch::Tensor& t,
+                                  const TextContext& text, const TextContext& null_text, const torch::Tensor& valid,
+                                  double cfg_scale, const TokenTransformerHooks* hooks);
 
 }  // namespace mc

@@ -9,6 +9,7 @@
 #include "models/anchor_adapters.h"
 #include "models/token_prior.h"
 #include "samplers/anchor_loss.h"
+#include "samplers/anchorroute_generator.h"
 #include "samplers/motion_generator.h"
 #include "samplers/route_solver.h"
 #include "samplers/tmd_sampler.h"
@@ -21,14 +22,15 @@ class AnchorRouteGenerator : public MotionGenerator {
  public:
   AnchorRouteGenerator(std::shared_ptr<TokenPrior> prior, std::shared_ptr<AnchorAdapterModule> adapter,
                        AnchorAdapterConfig adapter_cfg, std::string adapter_run, TmdSamplerConfig sampler,
-                       RouteSolverConfig route, int route_batch)
+                       RouteSolverConfig route, int route_batch, AnchorGuidanceConfig guidance = {})
       : prior_(std::move(prior)),
         adapter_(std::move(adapter)),
         acfg_(std::move(adapter_cfg)),
         adapter_run_(std::move(adapter_run)),
         sampler_(std::move(sampler)),
         route_(std::move(route)),
-        route_batch_(route_batch) {}
+        route_batch_(route_batch),
+        guidance_(std::move(guidance)) {}
 
   GeneratedMotions generate(const std::vector<ControlTask>& tasks, uint64_t seed) override {
     const int64_t N = tasks.size(), s = prior_->stride();
@@ -57,7 +59,8 @@ class AnchorRouteGenerator : public MotionGenerator {
     torch::Tensor feats;
     if (adapter_) {
       feats = torch::zeros({N, max_tokens * s, adapter_feature_width(acfg_.body_joints)});
-      for (int64_t i = 0; i < N; ++i) {
+      // An audit twin trained on zeroed features (model.training.zero_features) sees zeros here too.
+      for (int64_t i = 0; i < N && !acfg_.training.zero_features; ++i) {
         try {
           feats[i].narrow(0, 0, sets[i].frames).copy_(adapter_features(sets[i], acfg_.body_joints));
         } catch (const UserError& e) {
@@ -70,7 +73,9 @@ class AnchorRouteGenerator : public MotionGenerator {
                        const torch::Tensor& valid) {
         const int64_t B = ids.size(0), L = ids.size(1);
         AdapterInputs in{ids, t, text, valid, feats.narrow(0, start, B).narrow(1, 0, L * s).to(dev)};
-        return adapter_->hooks(in);
+        auto h = adapter_->hooks(in);
+        h.guidance = guidance_.hooks();
+        return h;
       };
     }
     auto r = sample_tmd(*prior_, captions, lengths, sampler_, seed, hooks);
@@ -111,6 +116,8 @@ class AnchorRouteGenerator : public MotionGenerator {
 
   std::string describe() const override {
     std::string a = adapter_ ? fmt::format("{} adapter {}", acfg_.adapter, adapter_run_) : "no adapter";
+    if (adapter_ && !guidance_.omitted_from_dump())
+      a += fmt::format(" (anchors in {} CFG passes, anchor guidance {})", guidance_.anchors, guidance_.scale);
     return fmt::format("AnchorRoute: TMD prior {} ({} steps, cfg {}), {}, RouteSolver {}", prior_->run_dir(),
                        sampler_.steps, sampler_.cfg_scale, a,
                        route_.steps > 0 ? fmt::format("RS{} ({} update, {} basis, {} activity)", route_.steps,
@@ -126,50 +133,43 @@ class AnchorRouteGenerator : public MotionGenerator {
   TmdSamplerConfig sampler_;
   RouteSolverConfig route_;
   int route_batch_;
+  AnchorGuidanceConfig guidance_;
 };
 
 }  // namespace
 
-struct AnchorRouteGeneratorConfig : GeneratorConfig {
-  std::string adapter_run;
-  std::string adapter_config;
-  std::vector<std::string> adapter_overrides;
-  std::string prior_run;
-  std::string prior_config = "configs/tmd/tmd_tiny.yaml";
-  std::vector<std::string> prior_overrides;
-  TmdSamplerConfig sampler;
-  RouteSolverConfig route;
-  int route_batch = 16;
-  void visit(FieldVisitor& v) override {
-    v("adapter_run", adapter_run, "finished anchor_adapter run (its TMD prior is used); '' with adapter_config '' = "
-      "the frozen TMD prior without generation-time conditioning ('TMD w/ solver')");
-    v("adapter_config", adapter_config, "anchor_adapter training config run on demand when adapter_run is ''");
-    v("adapter_overrides", adapter_overrides, "key=value overrides for adapter_config");
-    v("prior_run", prior_run, "without an adapter: finished tmd_prior run ('' = train prior_config on demand)");
-    v("prior_config", prior_config, "without an adapter: TMD training config run on demand");
-    v("prior_overrides", prior_overrides, "key=value overrides for prior_config");
-    v("sampler", sampler, "TMD transition sampler (eqs. (21)-(23))");
-    v("route", route, "RouteSolver refinement (steps 0 = off; RS100 / RS200 / RS500 and the Table V/VI variants)");
-    v("route_batch", route_batch, "motions refined together", at_least(1));
+void AnchorRouteGeneratorConfig::visit(FieldVisitor& v) {
+  v("adapter_run", adapter_run, "finished anchor_adapter run (its TMD prior is used); '' with adapter_config '' = "
+    "the frozen TMD prior without generation-time conditioning ('TMD w/ solver')");
+  v("adapter_config", adapter_config, "anchor_adapter training config run on demand when adapter_run is ''");
+  v("adapter_overrides", adapter_overrides, "key=value overrides for adapter_config");
+  v("prior_run", prior_run, "without an adapter: finished tmd_prior run ('' = train prior_config on demand)");
+  v("prior_config", prior_config, "without an adapter: TMD training config run on demand");
+  v("prior_overrides", prior_overrides, "key=value overrides for prior_config");
+  v("sampler", sampler, "TMD transition sampler (eqs. (21)-(23))");
+  v("route", route, "RouteSolver refinement (steps 0 = off; RS100 / RS200 / RS500 and the Table V/VI variants)");
+  v("route_batch", route_batch, "motions refined together", at_least(1));
+  v("guidance", guidance, "how CFG treats the anchors (defaults: anchors in both passes, no anchor term)");
+}
+
+std::unique_ptr<MotionGenerator> AnchorRouteGeneratorConfig::make(const GeneratorContext& ctx) const {
+  std::string run = adapter_run;
+  if (run.empty() && !adapter_config.empty()) run = train_on_demand(adapter_config, adapter_overrides);
+  if (!run.empty()) {
+    auto a = load_anchor_adapter(run, ctx.device);
+    return std::make_unique<AnchorRouteGenerator>(a.prior, a.module, a.cfg, run, sampler, route, route_batch,
+                                                  guidance);
   }
-  std::unique_ptr<MotionGenerator> make(const GeneratorContext& ctx) const override {
-    std::string run = adapter_run;
-    if (run.empty() && !adapter_config.empty()) run = train_on_demand(adapter_config, adapter_overrides);
-    if (!run.empty()) {
-      auto a = load_anchor_adapter(run, ctx.device);
-      return std::make_unique<AnchorRouteGenerator>(a.prior, a.module, a.cfg, run, sampler, route, route_batch);
-    }
-    std::string p = prior_run;
-    if (p.empty()) {
-      if (prior_config.empty()) fail("generator anchorroute: set adapter_run/adapter_config or prior_run/prior_config");
-      p = train_on_demand(prior_config, prior_overrides);
-    }
-    auto prior = std::make_shared<TokenPrior>(TokenPrior::load(p, ctx.device));
-    if (!prior->is_tmd()) fail("generator anchorroute: '{}' is not a tmd_prior run", p);
-    return std::make_unique<AnchorRouteGenerator>(prior, nullptr, AnchorAdapterConfig{}, "", sampler, route,
-                                                  route_batch);
+  std::string p = prior_run;
+  if (p.empty()) {
+    if (prior_config.empty()) fail("generator anchorroute: set adapter_run/adapter_config or prior_run/prior_config");
+    p = train_on_demand(prior_config, prior_overrides);
   }
-};
+  auto prior = std::make_shared<TokenPrior>(TokenPrior::load(p, ctx.device));
+  if (!prior->is_tmd()) fail("generator anchorroute: '{}' is not a tmd_prior run", p);
+  return std::make_unique<AnchorRouteGenerator>(prior, nullptr, AnchorAdapterConfig{}, "", sampler, route,
+                                                route_batch);
+}
 
 MC_REGISTER_GENERATOR("anchorroute", AnchorRouteGeneratorConfig,
                       "AnchorRoute: TMD + anchor adapter (AnchorKV) conditioned on each task's anchors, then "

@@ -109,25 +109,16 @@ torch::Tensor TokenPrior::raw_logits(const torch::Tensor& ids, const torch::Tens
   return (*net_)->transformer->forward(ids.to(device_), tt, text, valid.to(device_), hooks).logits;
 }
 
-namespace {
-torch::Tensor twice(const torch::Tensor& x) { return x.defined() ? torch::cat({x, x}) : x; }
-}  // namespace
-
 torch::Tensor TokenPrior::guided_logits(const torch::Tensor& ids, const torch::Tensor& t, const TextContext& text,
                                         const torch::Tensor& valid, double cfg_scale,
                                         const TokenTransformerHooks* hooks) const {
   torch::NoGradGuard ng;
   const int64_t B = ids.size(0), W = text.memory.size(1);
-  TokenTransformerHooks h2;
-  if (hooks) {
-    for (auto& kv : hooks->extra_kv) h2.extra_kv.push_back({twice(kv.k), twice(kv.v), twice(kv.mask)});
-    for (auto& r : hooks->block_residuals) h2.block_residuals.push_back(twice(r));
-  }
-  auto tt = t.defined() ? t.to(device_, torch::kFloat32).reshape({-1}).expand({B}) : torch::zeros({B});
-  auto l2 = raw_logits(torch::cat({ids, ids}), torch::cat({tt, tt}), cat_contexts(text, null_texts(B, W)),
-                       torch::cat({valid, valid}), hooks ? &h2 : nullptr);
-  auto lc = l2.narrow(0, 0, B), lu = l2.narrow(0, B, B);
-  auto l = lu + cfg_scale * (lc - lu);
+  torch::Tensor tt;
+  if (is_tmd()) tt = t.to(device_, torch::kFloat32).reshape({-1}).expand({B});
+  // Hooks in both halves unless hooks->guidance says otherwise (AnchorRoute's anchor guidance).
+  auto l = guided_token_logits(*(*net_)->transformer, ids.to(device_), tt, text, null_texts(B, W), valid.to(device_),
+                               cfg_scale, hooks);
   auto v = valid.to(device_, torch::kBool).unsqueeze(-1).expand_as(l);
   if (!torch::isfinite(l.masked_select(v)).all().item<bool>())
     fail("the token prior '{}' produced non-finite logits; the checkpoint is broken or diverged — retrain it "

@@ -67,7 +67,8 @@ class TokenPrior {
   torch::Tensor raw_logits(const torch::Tensor& ids, const torch::Tensor& t, const TextContext& text,
                            const torch::Tensor& valid, const TokenTransformerHooks* hooks = nullptr) const;
   // l_u + s (l_c - l_u), both halves in one doubled forward (hooks, if any, are given
-  // for B rows and duplicated). UserError when a valid position's logits are not finite.
+  // for B rows; hooks->guidance says which passes get them: guided_token_logits).
+  // UserError when a valid position's logits are not finite.
   torch::Tensor guided_logits(const torch::Tensor& ids, const torch::Tensor& t, const TextContext& text,
                               const torch::Tensor& valid, double cfg_scale,
                               const TokenTransformerHooks* hooks = nullptr) const;
@@ -130,7 +131,8 @@ struct TokenSampleResult {
 using TokenHooksFn = std::function<TokenTransformerHooks(int64_t start, const torch::Tensor& ids,
                                                          const torch::Tensor& t, const TextContext& text,
                                                          const torch::Tensor& valid)>;
-// `hooks` (optional) conditions every step; guided_logits gives them to both CFG halves.
+// `hooks` (optional) conditions every step; guided_logits gives them to the CFG passes
+// their `guidance` names (both halves by default).
 TokenSampleResult sample_tmd(const TokenPrior& prior, const std::vector<std::string>& captions,
                              const std::vector<int>& lengths, const TmdSamplerConfig& cfg, uint64_t seed,
                              const TokenHooksFn& hooks = {});

@@ -3,6 +3,7 @@
 // eq. (16) steps that move only adapter weights (backbone and decoder stay bit-identical).
 #include <catch2/catch.hpp>
 
+#include <limits>
 #include <random>
 
 #include "core/error.h"
@@ -242,4 +243,166 @@ TEST_CASE("eq. (16) steps move only adapter weights; backbone and decoder stay b
     for (auto& p : bb->parameters()) CHECK(torch::equal(p, frozen_before[k++]));
     for (auto& p : vq->parameters()) CHECK(torch::equal(p, frozen_before[k++]));
   }
+}
+
+namespace {
+
+// AnchorKV options of issue 15: the block's own normaliser and a token-aligned window.
+AnchorAdapterConfig aligned_config(int window) {
+  auto c = adapter_config("anchorkv");
+  c.anchorkv.normaliser = "own";
+  c.anchorkv.window = window;
+  return c;
+}
+
+double max_abs_diff(const torch::Tensor& a, const torch::Tensor& b) { return (a - b).abs().max().item<double>(); }
+
+// Randomises every trainable weight so an adapter's effect is visible.
+void randomise(torch::nn::Module& m, uint64_t seed, double std = 0.3) {
+  torch::manual_seed(seed);
+  torch::NoGradGuard ng;
+  for (auto& p : m.parameters())
+    if (p.requires_grad()) p.normal_(0.0, std);
+}
+
+}  // namespace
+
+TEST_CASE("identity at initialisation: untrained adapters leave the frozen prior's logits unchanged",
+          "[anchorkv]") {
+  auto o = backbone_options();
+  auto bb = frozen_backbone(o, 6);
+  std::vector<std::pair<std::string, AnchorAdapterConfig>> cases = {
+      {"anchorkv own, all slots", aligned_config(-1)},
+      {"anchorkv own, window 0", aligned_config(0)},
+      {"anchorkv own, window 1", aligned_config(1)},
+      {"cross_attention", adapter_config("cross_attention")},
+      {"controlnet", adapter_config("controlnet")}};
+  for (auto& [name, c] : cases) {
+    INFO(name);
+    auto a = make_anchor_adapter(c, bb, 4);
+    a->eval();
+    auto x = make_inputs(c, o, 3, 7, 4);
+    auto base = bb->forward(x.in.ids, x.in.t, x.in.text, x.in.valid).logits;
+    auto h = a->hooks(x.in);
+    auto with = bb->forward(x.in.ids, x.in.t, x.in.text, x.in.valid, &h).logits;
+    auto valid = x.in.valid.unsqueeze(-1).expand_as(base);
+    CHECK(max_abs_diff(base.masked_select(valid), with.masked_select(valid)) < 1e-6);
+    // Zero-init is not zero effect forever: the same adapter with random weights moves them.
+    randomise(*a, 8);
+    auto h2 = a->hooks(x.in);
+    auto moved = bb->forward(x.in.ids, x.in.t, x.in.text, x.in.valid, &h2).logits;
+    CHECK(max_abs_diff(base.masked_select(valid), moved.masked_select(valid)) > 1e-3);
+  }
+  // eq. (15) as written (one softmax over [K; K^s]) is not the identity at initialisation:
+  // the memory takes attention mass from the frozen block though its values are zero.
+  auto c = adapter_config("anchorkv");
+  REQUIRE(c.anchorkv.paper());
+  auto a = make_anchor_adapter(c, bb, 4);
+  a->eval();
+  auto x = make_inputs(c, o, 3, 7, 4);
+  auto h = a->hooks(x.in);
+  auto base = bb->forward(x.in.ids, x.in.t, x.in.text, x.in.valid).logits;
+  CHECK(max_abs_diff(base, bb->forward(x.in.ids, x.in.t, x.in.text, x.in.valid, &h).logits) > 1e-4);
+}
+
+TEST_CASE("AnchorKV window: token n reads memory slots |n - m| <= w only (own and joint normaliser)",
+          "[anchorkv]") {
+  auto o = backbone_options();
+  o.depth = 1;  // one block: token n's logits see the memory only through its own attention row
+  auto bb = frozen_backbone(o, 7);
+  const int64_t B = 2, L = 9, m = 4;
+  torch::manual_seed(1);
+  auto ids = torch::randint(0, o.num_codes, {B, L}, torch::kInt64);
+  auto t = torch::rand({B});
+  auto text = random_text(B, 5, o.text_dim);
+  auto valid = torch::ones({B, L}, torch::kBool);
+  auto k = torch::randn({B, L, o.width}), v = torch::randn({B, L, o.width});
+  for (std::string norm : {"own", "joint"})
+    for (int w : {0, 1, 3}) {
+      INFO(norm << " window " << w);
+      auto pos = torch::arange(L, torch::kFloat32);
+      auto bias = torch::zeros({L, L}).masked_fill((pos.unsqueeze(1) - pos.unsqueeze(0)).abs() > w,
+                                                   -std::numeric_limits<float>::infinity());
+      auto run = [&](const torch::Tensor& vv) {
+        TokenTransformerHooks h;
+        LayerKV kv{k, vv, valid};
+        kv.bias = bias;
+        kv.own_normaliser = norm == "own";
+        h.extra_kv.push_back(kv);
+        return bb->forward(ids, t, text, valid, &h).logits;
+      };
+      auto v2 = v.clone();
+      v2.select(1, m).add_(1.0);  // change memory slot m's value only
+      auto d = (run(v) - run(v2)).abs().amax({0, 2});  // [L]
+      for (int64_t n = 0; n < L; ++n) {
+        if (std::abs(n - m) <= w)
+          CHECK(d[n].item<double>() > 1e-5);
+        else
+          CHECK(d[n].item<double>() == 0.0);
+      }
+    }
+}
+
+TEST_CASE("AnchorKV own normaliser: zero memory values leave the block as it was; the joint softmax does not",
+          "[anchorkv]") {
+  auto o = backbone_options();
+  o.depth = 1;
+  auto bb = frozen_backbone(o, 9);
+  const int64_t B = 2, L = 6;
+  torch::manual_seed(2);
+  auto ids = torch::randint(0, o.num_codes, {B, L}, torch::kInt64);
+  auto t = torch::rand({B});
+  auto text = random_text(B, 5, o.text_dim);
+  auto valid = torch::ones({B, L}, torch::kBool);
+  auto k = torch::randn({B, L, o.width}) * 3;
+  auto base = bb->forward(ids, t, text, valid).logits;
+  TokenTransformerHooks h;
+  LayerKV kv{k, torch::zeros({B, L, o.width}), valid};
+  kv.own_normaliser = true;
+  h.extra_kv.push_back(kv);
+  CHECK(max_abs_diff(base, bb->forward(ids, t, text, valid, &h).logits) < 1e-6);
+  h.extra_kv[0].own_normaliser = false;
+  CHECK(max_abs_diff(base, bb->forward(ids, t, text, valid, &h).logits) > 1e-4);
+}
+
+TEST_CASE("anchor guidance: CFG passes with and without hooks, and the anchor weight pushes toward the anchors",
+          "[anchorkv]") {
+  auto o = backbone_options();
+  auto bb = frozen_backbone(o, 10);
+  auto c = aligned_config(1);
+  auto a = make_anchor_adapter(c, bb, 4);
+  randomise(*a, 12);
+  a->eval();
+  auto x = make_inputs(c, o, 3, 7, 4);
+  torch::NoGradGuard ng;
+  auto null = random_text(3, 5, o.text_dim);
+  auto h = a->hooks(x.in);
+  auto fwd = [&](const TextContext& txt, bool hooks) {
+    return bb->forward(x.in.ids, x.in.t, txt, x.in.valid, hooks ? &h : nullptr).logits;
+  };
+  auto lcA = fwd(x.in.text, true), luA = fwd(null, true), lc0 = fwd(x.in.text, false), lu0 = fwd(null, false);
+  const double s = 3.0;
+  auto guided = [&](bool in_uncond, double scale) {
+    h.guidance = {in_uncond, scale};
+    return guided_token_logits(*bb, x.in.ids, x.in.t, x.in.text, null, x.in.valid, s, &h);
+  };
+  // The default is the two-pass CFG with the hooks in both halves (what sampling did before).
+  CHECK(max_abs_diff(guided(true, 1.0), luA + s * (lcA - luA)) < 1e-4);
+  CHECK(max_abs_diff(guided(false, 1.0), lu0 + s * (lcA - lu0)) < 1e-4);
+  CHECK(max_abs_diff(guided(true, 2.5), luA + s * (lcA - luA) + 1.5 * (lcA - lc0)) < 1e-4);
+  CHECK(max_abs_diff(guided_token_logits(*bb, x.in.ids, x.in.t, x.in.text, null, x.in.valid, s, nullptr),
+                     lu0 + s * (lc0 - lu0)) < 1e-4);
+  // Direction: at each position the code the anchors favour most (argmax of l_cA - l_c0)
+  // gains log-probability as the anchor weight grows. Anchors conditional-only add
+  // (s - 1)(l_uA - l_u0) to the default, so argmax(l_uA - l_u0) gains too.
+  auto favoured = (lcA - lc0).argmax(-1, true);
+  auto logp = [&](const torch::Tensor& l, const torch::Tensor& idx) {
+    return torch::log_softmax(l, -1).gather(-1, idx).squeeze(-1);
+  };
+  auto p1 = logp(guided(true, 1.0), favoured), p2 = logp(guided(true, 2.0), favoured),
+       p4 = logp(guided(true, 4.0), favoured);
+  CHECK((p2 > p1).all().item<bool>());
+  CHECK((p4 > p2).all().item<bool>());
+  auto fav_u = (luA - lu0).argmax(-1, true);
+  CHECK((logp(guided(false, 1.0), fav_u) > logp(guided(true, 1.0), fav_u)).all().item<bool>());
 }

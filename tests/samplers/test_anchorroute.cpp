@@ -1,6 +1,7 @@
 // AnchorRoute end to end on a tiny tokenizer / TMD / AnchorKV trained in place: the
-// `anchors` and `sparse_keyjoint` protocols, the `anchorroute` generator with and without
-// the adapter, and RouteSolver's control error falling with its step count.
+// `anchors` and `sparse_keyjoint` protocols; the `anchorroute` generator with an AnchorKV
+// adapter beating its zeroed-feature twin on held-out clips (paired tasks and seeds),
+// and RouteSolver's control error falling with its step count.
 #include <catch2/catch.hpp>
 
 #include <chrono>
@@ -81,14 +82,26 @@ TEST_CASE("anchors protocol: family x K cells, values from the clip, specs every
   CHECK_THROWS_AS(protocol_tasks("anchors", "anchor_counts: [500]\n", set, {0}, 1), UserError);
 }
 
-TEST_CASE("AnchorRoute end to end: AnchorKV beats the frozen TMD on control error, RouteSolver falls with steps",
+// Per task: mean anchor error of its motion [T, J, 3] (metres).
+static std::vector<double> task_errors(const GeneratedMotions& g, const std::vector<ControlTask>& tasks, const Skeleton& sk) {
+  std::vector<AnchorSet> sets;
+  for (auto& t : tasks) sets.push_back(anchors_from_spec(t.spec, t.length, sk, t.source.data()));
+  auto a = make_anchor_batch(sets);
+  auto e = anchor_errors(g.world, a);  // [B, N], 0 on padding
+  auto n = a.valid.to(torch::kFloat64).sum(1).clamp_min(1.0);
+  auto m = e.to(torch::kFloat64).sum(1) / n;
+  return std::vector<double>(m.data_ptr<double>(), m.data_ptr<double>() + m.numel());
+}
+
+TEST_CASE("AnchorRoute end to end: on held-out clips AnchorKV beats its zeroed-feature twin (paired tasks and "
+          "seeds); RouteSolver falls with steps",
           "[anchorkv][slow]") {
   auto t0 = std::chrono::steady_clock::now();
   TempDir tmp("anchorroute_e2e");
   const std::string data = (tmp.path / "fx.h5").string(), root = (tmp.path / "runs").string();
-  REQUIRE(run_motionctl(fmt::format("fixture configs/data/smoke.yaml output={} fixture.num_clips=60", data))
+  REQUIRE(run_motionctl(fmt::format("fixture configs/data/smoke.yaml output={} fixture.num_clips=200", data))
               .exit_code == 0);
-  std::vector<std::string> common = {"data.path=" + data, "run.root=" + root, "run.threads=1", "run.log_every=20",
+  std::vector<std::string> common = {"data.path=" + data, "run.root=" + root, "run.threads=1", "run.log_every=50",
                                      "run.checkpoint_every=1000"};
   auto ov = [&](std::vector<std::string> more) {
     auto v = common;
@@ -102,10 +115,17 @@ TEST_CASE("AnchorRoute end to end: AnchorKV beats the frozen TMD on control erro
                        ov({"optim.steps=40", "optim.warmup=5", "model.width=64", "model.heads=2",
                            "model.text_width=32", "model.text_ff=64", "model.eval_t=[0.5]",
                            "model.tokenizer_run=" + tok.run_dir.string()}));
-  auto adapter = run_train("configs/adapter/anchorkv_tiny.yaml",
-                           ov({"optim.steps=400", "optim.warmup=20", "optim.batch_size=16", "optim.lr=2e-3", "model.rank=8",
-                               "model.families=[root_3d]", "model.anchor_counts=[4, 8]",
-                               "model.tmd_run=" + tmd.run_dir.string()}));
+  // Twins: same seed, so the same batches, times, corruptions and anchor draws; one sees
+  // the anchor features, the other all zeros (model.training.zero_features).
+  std::vector<std::string> adapter_ov = {
+      "optim.steps=400", "optim.warmup=20", "optim.batch_size=16", "optim.lr=2e-3", "model.rank=8",
+      "model.families=[root_3d]", "model.anchor_counts=[4, 8]", "model.anchorkv.normaliser=own",
+      "model.anchorkv.window=1", "model.training.t_power=2", "model.lambda_anc=3",
+      "model.tmd_run=" + tmd.run_dir.string()};
+  auto adapter = run_train("configs/adapter/anchorkv_tiny.yaml", ov(adapter_ov));
+  adapter_ov.push_back("model.training.zero_features=true");
+  auto twin = run_train("configs/adapter/anchorkv_tiny.yaml", ov(adapter_ov));
+  REQUIRE(adapter.run_dir != twin.run_dir);
   REQUIRE(fs::exists(adapter.run_dir / "outputs" / "adapter_meta.yaml"));
   const double n_params = adapter.summary.at("trainable_params");
   CHECK(n_params > 0);
@@ -113,44 +133,75 @@ TEST_CASE("AnchorRoute end to end: AnchorKV beats the frozen TMD on control erro
   auto loaded = load_anchor_adapter(adapter.run_dir.string());
   CHECK(loaded.trainable_parameters == int64_t(n_params));
   CHECK(loaded.prior->run_dir() == tmd.run_dir.string());
+  // Every adapter run reports the validation soft control error at t = 0.1, real and zeroed.
+  for (auto* r : {&adapter, &twin})
+    for (auto k : {"val_soft_control_error_t01", "val_soft_control_error_t01_zeroed", "val_ce_t01"})
+      CHECK(r->summary.count(k) == 1);
+  WARN("val soft control error at t = 0.1: adapter " << adapter.summary.at("val_soft_control_error_t01")
+       << " m (its features zeroed " << adapter.summary.at("val_soft_control_error_t01_zeroed") << " m), twin "
+       << twin.summary.at("val_soft_control_error_t01") << " m");
 
+  // Held-out clips (the test split, never seen in training), several sampling seeds.
   auto ds = MotionDataset::load(data);
   const MotionSet& set = ds->set();
   std::vector<size_t> clips;
-  for (int64_t i : ds->split("train")) {
-    if (clips.size() == 8) break;
-    clips.push_back(static_cast<size_t>(i));
-  }
+  for (int64_t i : ds->split("test")) clips.push_back(static_cast<size_t>(i));
+  REQUIRE(clips.size() >= 16);
+  clips.resize(16);
   auto tasks = protocol_tasks("anchors", "families: [root_3d]\nanchor_counts: [4, 8]\n", set, clips, 11);
-  const std::string sampler = "sampler:\n  steps: 8\n  batch_size: 8\n";
+  const std::string sampler = "sampler:\n  steps: 8\n  batch_size: 16\n";
+  auto gen_real = make_generator(fmt::format("adapter_run: {}\n{}route:\n  steps: 0\n", adapter.run_dir.string(), sampler));
+  auto gen_twin = make_generator(fmt::format("adapter_run: {}\n{}route:\n  steps: 0\n", twin.run_dir.string(), sampler));
   auto frozen = make_generator(fmt::format("prior_run: {}\n{}route:\n  steps: 0\n", tmd.run_dir.string(), sampler));
-  auto g_frozen = frozen->generate(tasks, 3);
-  std::vector<double> errs;
+  std::vector<double> diff;  // twin - real, per (task, seed)
+  double sum_real = 0, sum_twin = 0, sum_frozen = 0;
   GeneratedMotions g0;
-  for (int steps : {0, 100, 200, 500}) {
+  for (uint64_t seed : {3, 5, 7}) {
+    auto gr = gen_real->generate(tasks, seed), gt = gen_twin->generate(tasks, seed), gf = frozen->generate(tasks, seed);
+    REQUIRE(gr.world.size(0) == 16);
+    if (seed == 3) g0 = gr;
+    auto er = task_errors(gr, tasks, set.skeleton), et = task_errors(gt, tasks, set.skeleton),
+         ef = task_errors(gf, tasks, set.skeleton);
+    for (size_t i = 0; i < er.size(); ++i) {
+      diff.push_back(et[i] - er[i]);
+      sum_real += er[i];
+      sum_twin += et[i];
+      sum_frozen += ef[i];
+    }
+  }
+  const double n = diff.size();
+  double mean = 0, var = 0;
+  for (double d : diff) mean += d / n;
+  for (double d : diff) var += (d - mean) * (d - mean) / (n - 1);
+  const double tstat = mean / std::sqrt(var / n);
+  WARN("held-out control error (16 tasks x 3 seeds): AnchorKV " << sum_real / n << " m, zeroed twin "
+       << sum_twin / n << " m, frozen TMD " << sum_frozen / n << " m; paired difference " << mean << " m, t = "
+       << tstat);
+  // The certificate: the anchors, not the extra parameters, lower the error: a paired
+  // one-sided t > 2.5 over 48 (task, seed) pairs and at least 2 cm on average. An
+  // anchor-blind adapter sits at t ~ 0 and fails. At this scale (tokenizer 60 steps,
+  // TMD 40, adapters 400; errors ~2.5 m) the gain is small — measured 8 cm, t = 4.9 —
+  // so this certifies that anchor information flows, not that AnchorKV controls well.
+  CHECK(mean > 0.02);
+  CHECK(tstat > 2.5);
+
+  bool noted = false;
+  for (auto& note : g0.notes) noted |= note == fmt::format("trainable parameters: {}", int64_t(n_params));
+  CHECK(noted);
+  // RouteSolver from the adapter's tokens: the control error falls with the step count.
+  std::vector<double> errs = {control_error(g0, tasks, set.skeleton)};
+  for (int steps : {100, 200, 500}) {
     auto gen = make_generator(
         fmt::format("adapter_run: {}\n{}route:\n  steps: {}\n", adapter.run_dir.string(), sampler, steps));
-    auto g = gen->generate(tasks, 3);
-    REQUIRE(g.world.size(0) == 8);
-    CHECK(g.lengths == std::vector<int>(g_frozen.lengths));
-    bool noted = false;
-    for (auto& n : g.notes) noted |= n == fmt::format("trainable parameters: {}", int64_t(n_params));
-    CHECK(noted);
-    errs.push_back(control_error(g, tasks, set.skeleton));
-    if (steps == 0) g0 = g;
+    errs.push_back(control_error(gen->generate(tasks, 3), tasks, set.skeleton));
   }
-  const double frozen_err = control_error(g_frozen, tasks, set.skeleton);
-  WARN("control error: frozen TMD " << frozen_err << ", AnchorKV RS0 " << errs[0] << ", RS100 " << errs[1]
-                                    << ", RS200 " << errs[2] << ", RS500 " << errs[3]);
-  CHECK(errs[0] < frozen_err);
+  WARN("RouteSolver: RS0 " << errs[0] << ", RS100 " << errs[1] << ", RS200 " << errs[2] << ", RS500 " << errs[3]);
   CHECK(errs[0] > errs[1]);
   CHECK(errs[1] > errs[2]);
   CHECK(errs[2] > errs[3]);
-  // Deterministic, and past each task's length the motion is zero.
-  auto again = make_generator(fmt::format("adapter_run: {}\n{}route:\n  steps: 0\n", adapter.run_dir.string(), sampler))
-                   ->generate(tasks, 3);
+  // Deterministic, and a task whose constraint anchors cannot express is refused by name.
+  auto again = gen_real->generate(tasks, 3);
   CHECK(torch::equal(again.world, g0.world));
-  // A task whose constraint anchors cannot express is refused by name.
   auto bad = tasks;
   bad[0].spec.items[0].type = "loop";
   try {
