@@ -129,7 +129,7 @@ TEST_CASE("score on a generate output reproduces the generator's printed control
   }
 }
 
-TEST_CASE("eval: embeddings round-trip and FID recomputes from them; a file regenerated in place is re-evaluated",
+TEST_CASE("eval: embeddings round-trip and FID recomputes from them, a file regenerated in place is re-evaluated",
           "[eval][outside]") {
   TempDir t("outside_eval");
   const std::string fx = (t.path / "fx.h5").string();

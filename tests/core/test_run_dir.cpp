@@ -92,7 +92,7 @@ TEST_CASE("a run directory has one writer: a second process is refused with the 
   CHECK(slurp(dir / ".lock").empty());  // released: nobody holds it
 }
 
-TEST_CASE("force redoes a run in its own directory; stale temporaries are removed", "[run_dir]") {
+TEST_CASE("force redoes a run in its own directory, stale temporaries are removed", "[run_dir]") {
   TempDir t("force");
   RunConfig rc;
   rc.root = t.path.string();

@@ -137,7 +137,7 @@ TEST_CASE("normalised train joints have zero mean and unit std per axis", "[data
   }
 }
 
-TEST_CASE("normalise then denormalise is the identity; the affine maps are explicit", "[data]") {
+TEST_CASE("normalise then denormalise is the identity, the affine maps are explicit", "[data]") {
   NormStats s;
   s.joint_mean = {0.00016f, 0.3766f, 0.3102f};  // HumanML3D's values (reference-facts §2)
   s.joint_std = {0.5148f, 0.6101f, 0.8716f};

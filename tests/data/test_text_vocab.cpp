@@ -16,7 +16,7 @@ TEST_CASE("tokenize: lowercase, split on non-letters, apostrophes split", "[data
   CHECK(tokenize_caption("...123...").empty());
 }
 
-TEST_CASE("vocabulary: specials first, then by frequency, ties alphabetical; min_count", "[data]") {
+TEST_CASE("vocabulary: specials first, then by frequency, ties alphabetical, min_count", "[data]") {
   const std::vector<std::string> caps = {"a person walks", "A person runs", "the person walks fast", "zebra"};
   TextVocab v = TextVocab::build(caps);
   // person x3; a x2, walks x2; fast, runs, the, zebra x1.
@@ -32,7 +32,7 @@ TEST_CASE("vocabulary: specials first, then by frequency, ties alphabetical; min
   CHECK_THROWS_AS(TextVocab::build(caps, 0), UserError);
 }
 
-TEST_CASE("encode/decode round trip; unknown words become <unk>; truncation keeps <eos>", "[data]") {
+TEST_CASE("encode/decode round trip, unknown words become <unk>, truncation keeps <eos>", "[data]") {
   TextVocab v = TextVocab::build({"a person walks forward", "a person turns left", "someone jumps"});
   auto e = v.encode("A person walks forward", 10);
   REQUIRE(e.ids.size() == 10);

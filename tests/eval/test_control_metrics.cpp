@@ -98,7 +98,7 @@ TEST_CASE("control metrics on the hand-made three-sample example", "[eval]") {
   REQUIRE(m.control_error == Approx((0.1 + 0.3 + 0.625 + 0.125 + 0.5 + 0.25 + 0.0) / 7).margin(1e-7));
 }
 
-TEST_CASE("control metrics skip and count samples without controlled entries; custom thresholds", "[eval]") {
+TEST_CASE("control metrics skip and count samples without controlled entries, custom thresholds", "[eval]") {
   auto s = hand_made();
   s.emplace_back();  // no controlled entry
   ControlOptions opt;

@@ -178,7 +178,7 @@ TEST_CASE("KID is unbiased: its mean over same-distribution pairs is ~0 where FI
   CHECK(vstat_sum / trials > mean + 10 * se);
 }
 
-TEST_CASE("KID of two halves of one set is ~0; it grows with a mean shift and is symmetric", "[eval][health]") {
+TEST_CASE("KID of two halves of one set is ~0, it grows with a mean shift and is symmetric", "[eval][health]") {
   const Eigen::MatrixXd all = gaussian_matrix(600, 8, 41);
   const Eigen::MatrixXd a = all.topRows(300), b = all.bottomRows(300);
   const double halves = kid(a, b);
@@ -258,7 +258,7 @@ TEST_CASE("matching score is the mean paired distance", "[eval]") {
   REQUIRE(matching_score(t, m) == Approx(2.5));
 }
 
-TEST_CASE("diversity: identical embeddings give 0; two alternating clusters give d per differing pair", "[eval]") {
+TEST_CASE("diversity: identical embeddings give 0, two alternating clusters give d per differing pair", "[eval]") {
   std::mt19937_64 rng(3);
   const Eigen::MatrixXd same = Eigen::MatrixXd::Constant(400, 4, 2.5);
   REQUIRE(diversity(same, 300, rng) == 0.0);
@@ -281,7 +281,7 @@ TEST_CASE("diversity: identical embeddings give 0; two alternating clusters give
   REQUIRE(sum / 50 == Approx(2.5).margin(0.05));  // sd of the mean ~ 0.02
 }
 
-TEST_CASE("multimodality: identical generations per text give 0; alternating clusters give d/2", "[eval]") {
+TEST_CASE("multimodality: identical generations per text give 0, alternating clusters give d/2", "[eval]") {
   std::vector<Embeddings> groups;
   for (int i = 0; i < 20; ++i) groups.push_back(Eigen::MatrixXd::Constant(30, 3, 10.0 * i));  // texts differ
   std::mt19937_64 rng(4);

@@ -81,7 +81,7 @@ double fid_between(const T2MEvaluator& ev, const MotionSet& a, const MotionSet& 
 }  // namespace
 
 // One test case (one process under ctest) so the evaluator is trained once.
-TEST_CASE("evaluator on the fixture: metrics respond as they should; motionctl eval; bad inputs", "[eval][slow]") {
+TEST_CASE("evaluator on the fixture: metrics respond as they should, motionctl eval, bad inputs", "[eval][slow]") {
   auto& tr = trained();
   SECTION("FID, R-precision and matching") {
     T2MEvaluator ev = T2MEvaluator::load(tr.run);
@@ -240,7 +240,7 @@ TEST_CASE("motionctl score: foot skating and control errors from a constraint sp
   CHECK_THROWS_AS(free_metrics_of_selection(clips, &errors, {}, m.skeleton, m.fps, p), mc::UserError);
 }
 
-TEST_CASE("t2m_metrics: multimodality over caption groups cut to equal size; pools", "[eval]") {
+TEST_CASE("t2m_metrics: multimodality over caption groups cut to equal size, pools", "[eval]") {
   // 6 captions x (3 or 4) generations: groups are cut to 3 each; embeddings of a
   // text's generations differ by a known amount, so multimodality is known.
   EvalEmbeddings e;

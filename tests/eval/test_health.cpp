@@ -125,7 +125,7 @@ TEST_CASE("default evaluator: the evaluator config trained on the same data, els
   }
 }
 
-TEST_CASE("motionctl health: ground-truth self-check is clean, a random flow prior is not; bad input exits 2",
+TEST_CASE("motionctl health: ground-truth self-check is clean, a random flow prior is not, bad input exits 2",
           "[health][cli]") {
   HealthBed bed(120);  // 12 test, 12 val clips
   const fs::path prior = bed.dir.path / "prior";

@@ -56,7 +56,7 @@ TEST_CASE("mean |acceleration|: constant velocity is 0, a parabola is its second
   REQUIRE_USER_ERROR(mean_abs_acceleration(std::vector<JointsView>{two.view()}, fps), "3 valid frames");
 }
 
-TEST_CASE("bone-length std: a rigid skeleton moving rigidly is 0; a breathing bone gives its std", "[eval][health]") {
+TEST_CASE("bone-length std: a rigid skeleton moving rigidly is 0, a breathing bone gives its std", "[eval][health]") {
   const Skeleton& s = humanml3d_skeleton();
   const int T = 40;
   // Rest pose translated and rotated about y over time: every bone keeps its length.

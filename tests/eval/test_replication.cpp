@@ -61,7 +61,7 @@ TEST_CASE("bootstrap_summary: the full set's value, the resamples' sample SD, 1.
   REQUIRE_USER_ERROR(bootstrap_summary(1.0, {1.0, std::nan("")}), "not finite");
 }
 
-TEST_CASE("select_rows picks motion/text rows and captions, repeats included; the reference stays whole", "[eval]") {
+TEST_CASE("select_rows picks motion/text rows and captions, repeats included, the reference stays whole", "[eval]") {
   EvalEmbeddings e;
   e.motion = Embeddings::Zero(4, 2);
   e.text = Embeddings::Zero(4, 2);

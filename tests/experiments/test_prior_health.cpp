@@ -15,7 +15,7 @@
 using namespace mc;
 using namespace mc::test;
 
-TEST_CASE("reproduce's prior health: table tops name the verdict; health.md/json gather the reports", "[health]") {
+TEST_CASE("reproduce's prior health: table tops name the verdict, health.md/json gather the reports", "[health]") {
   TempDir dir("prior_health");
   const std::string fx = (dir.path / "fx.h5").string(), runs = (dir.path / "runs").string();
   REQUIRE(run_motionctl(fmt::format("fixture configs/data/smoke.yaml output={} fixture.num_clips=100", fx)).exit_code ==

@@ -194,7 +194,7 @@ TEST_CASE("trainable parameter counts: AnchorKV is far smaller than ControlNet a
   CHECK(count_parameters(*kv8) - count_parameters(*kv) == 6 * 4 * (128 + 2 * 128));
 }
 
-TEST_CASE("eq. (16) steps move only adapter weights; backbone and decoder stay bit-identical", "[anchorkv]") {
+TEST_CASE("eq. (16) steps move only adapter weights, backbone and decoder stay bit-identical", "[anchorkv]") {
   auto o = backbone_options();
   auto bb = frozen_backbone(o, 4);
   torch::manual_seed(9);
@@ -343,7 +343,7 @@ TEST_CASE("AnchorKV window: token n reads memory slots |n - m| <= w only (own an
     }
 }
 
-TEST_CASE("AnchorKV own normaliser: zero memory values leave the block as it was; the joint softmax does not",
+TEST_CASE("AnchorKV own normaliser: zero memory values leave the block as it was, the joint softmax does not",
           "[anchorkv]") {
   auto o = backbone_options();
   o.depth = 1;

@@ -164,7 +164,7 @@ std::unique_ptr<Trainable> tiny_flow_trainer(TrainJobConfig& job, const std::str
 }
 }  // namespace
 
-TEST_CASE("flow prior: batches trimmed to their longest clip; FLOPs count valid frames only",
+TEST_CASE("flow prior: batches trimmed to their longest clip, FLOPs count valid frames only",
           "[flow]") {
   TrainJobConfig a, b;
   std::shared_ptr<MotionDataset> data;

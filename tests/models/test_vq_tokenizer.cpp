@@ -426,7 +426,7 @@ TEST_CASE("invariant tokenizer: world joints in and out, padding ignored, soft d
   CHECK(logits.grad().abs().sum().item<double>() > 0);
 }
 
-TEST_CASE("the absolute tokenizer configs keep their hash; standard ones read invariant features",
+TEST_CASE("the absolute tokenizer configs keep their hash, standard ones read invariant features",
           "[tokenizer][invariant]") {
   auto tiny = load_job<TrainJobConfig>("configs/tokenizer/vq_tiny.yaml", {});
   CHECK(dump_config(tiny).find("representation") == std::string::npos);

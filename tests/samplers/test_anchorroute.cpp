@@ -94,7 +94,7 @@ static std::vector<double> task_errors(const GeneratedMotions& g, const std::vec
 }
 
 TEST_CASE("AnchorRoute end to end: on held-out clips AnchorKV beats its zeroed-feature twin (paired tasks and "
-          "seeds); RouteSolver falls with steps",
+          "seeds), RouteSolver falls with steps",
           "[anchorkv][slow]") {
   auto t0 = std::chrono::steady_clock::now();
   TempDir tmp("anchorroute_e2e");

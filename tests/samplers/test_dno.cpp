@@ -149,7 +149,7 @@ TEST_CASE("DNO decorrelation penalty: near zero for white noise, large for smoot
   CHECK(decorrelation_penalty(padded, {128}, 2).item<double>() == Approx(pw));
 }
 
-TEST_CASE("DNO reduces the constraint residual on a random-weight prior; deterministic in the seed", "[dno]") {
+TEST_CASE("DNO reduces the constraint residual on a random-weight prior, deterministic in the seed", "[dno]") {
   TempDir dir("dno");
   write_random_prior_run(dir.path);
   FlowPrior prior = FlowPrior::load(dir.path.string());

@@ -202,7 +202,7 @@ TEST_CASE("ProjFlow: hard constraints of every type hold exactly through the sam
   }
 }
 
-TEST_CASE("ProjFlow: soft keyframes approach their targets as the variance shrinks; seeds", "[projflow]") {
+TEST_CASE("ProjFlow: soft keyframes approach their targets as the variance shrinks, seeds", "[projflow]") {
   TempDir dir("projflow_soft");
   write_prior_run(dir.path / "prior");
   const Skeleton& sk = humanml3d_skeleton();
@@ -243,7 +243,7 @@ TEST_CASE("ProjFlow: soft keyframes approach their targets as the variance shrin
   CHECK(!torch::equal(a.world, c.world));
 }
 
-TEST_CASE("reconstruction guidance pulls samples toward the constraints; imputation is exact", "[projflow]") {
+TEST_CASE("reconstruction guidance pulls samples toward the constraints, imputation is exact", "[projflow]") {
   TempDir dir("guidance");
   write_prior_run(dir.path / "prior");
   const Skeleton& sk = humanml3d_skeleton();

@@ -199,7 +199,7 @@ TEST_CASE("RouteSolver variants change behaviour as documented", "[routesolver]"
   CHECK(none.final_control_error == none.initial_control_error);
 }
 
-TEST_CASE("RouteSolver: per-sample results do not depend on the batch; bad input is a UserError", "[routesolver]") {
+TEST_CASE("RouteSolver: per-sample results do not depend on the batch, bad input is a UserError", "[routesolver]") {
   Problem p = make_problem(AnchorFamily::root_3d, 8);
   RouteSolverConfig cfg;
   cfg.steps = 30;

@@ -238,7 +238,7 @@ torch::Tensor clustered_codebook(int64_t K, int64_t D, int64_t clusters, uint64_
 
 }  // namespace
 
-TEST_CASE("TMD path: the paper's table is eq. (17) on the raw codes; stats match eq. (18)", "[tmd][calibration]") {
+TEST_CASE("TMD path: the paper's table is eq. (17) on the raw codes, stats match eq. (18)", "[tmd][calibration]") {
   auto cb = clustered_codebook(64, 16, 8, 1);
   auto paper = tmd_path_table(cb, TmdPathConfig{}, 3.0, 0.9);
   CHECK(paper.scale == 1.0);

@@ -176,7 +176,7 @@ TEST_CASE("a failed start claims no run directory", "[train]") {
   CHECK_FALSE(fs::exists(t.path / "toy" / "r"));
 }
 
-TEST_CASE("stop after any step and SIGINT checkpoint where they stop; the resumed run equals the uninterrupted one",
+TEST_CASE("stop after any step and SIGINT checkpoint where they stop, the resumed run equals the uninterrupted one",
           "[train]") {
   TempDir t("stop");
   auto whole = toy_job(t.path / "a", "", 23);
@@ -231,7 +231,7 @@ TEST_CASE("a kill between the last checkpoint and DONE finishes with the real fi
   CHECK(after.at("final_loss") == before.at("final_loss"));
 }
 
-TEST_CASE("a corrupt checkpoint is refused naming the file; stale temporaries go", "[train]") {
+TEST_CASE("a corrupt checkpoint is refused naming the file, stale temporaries go", "[train]") {
   TempDir t("corrupt");
   auto job = toy_job(t.path, "");
   TrainLoopOptions stop;
