@@ -176,6 +176,23 @@ std::vector<float> mc67_features(const float* joints, int frames, const Skeleton
   }
   return out;
 }
+// One frame's world joints from its features (f[3] root height, then J-1 root-relative
+// joints in the facing frame) given the integrated heading and root position; shared by
+// both layouts' recovery.
+static void write_world_frame(const float* f, double heading, double root_x, double root_z, int J, float* o) {
+  o[0] = static_cast<float>(root_x);
+  o[1] = f[3];
+  o[2] = static_cast<float>(root_z);
+  for (int j = 1; j < J; ++j) {
+    const float* l = f + 4 + (j - 1) * 3;
+    double x, z;
+    to_facing_frame(-heading, l[0], l[2], x, z);
+    o[j * 3 + 0] = static_cast<float>(x + root_x);
+    o[j * 3 + 1] = l[1];
+    o[j * 3 + 2] = static_cast<float>(z + root_z);
+  }
+}
+
 
 std::vector<float> recover_joints_from_mc67(const float* features, int feature_frames, int num_joints) {
   const int J = num_joints, D = 4 + 3 * (J - 1);
@@ -192,18 +209,7 @@ std::vector<float> recover_joints_from_mc67(const float* features, int feature_f
       root_x += dx;
       root_z += dz;
     }
-    float* o = out.data() + static_cast<size_t>(t) * J * 3;
-    o[0] = static_cast<float>(root_x);
-    o[1] = f[3];
-    o[2] = static_cast<float>(root_z);
-    for (int j = 1; j < J; ++j) {
-      const float* l = f + 4 + (j - 1) * 3;
-      double x, z;
-      to_facing_frame(-heading, l[0], l[2], x, z);
-      o[j * 3 + 0] = static_cast<float>(x + root_x);
-      o[j * 3 + 1] = l[1];
-      o[j * 3 + 2] = static_cast<float>(z + root_z);
-    }
+    write_world_frame(f, heading, root_x, root_z, J, out.data() + static_cast<size_t>(t) * J * 3);
   }
   return out;
 }
@@ -267,18 +273,7 @@ std::vector<float> recover_joints_from_invariant(const float* features, int fram
     to_facing_frame(-heading, f[1], f[2], dx, dz);  // facing frame of t -> world
     root_x += dx;
     root_z += dz;
-    float* o = out.data() + static_cast<size_t>(t) * J * 3;
-    o[0] = static_cast<float>(root_x);
-    o[1] = f[3];
-    o[2] = static_cast<float>(root_z);
-    for (int j = 1; j < J; ++j) {
-      const float* l = f + 4 + (j - 1) * 3;
-      double x, z;
-      to_facing_frame(-heading, l[0], l[2], x, z);
-      o[j * 3 + 0] = static_cast<float>(x + root_x);
-      o[j * 3 + 1] = l[1];
-      o[j * 3 + 2] = static_cast<float>(z + root_z);
-    }
+    write_world_frame(f, heading, root_x, root_z, J, out.data() + static_cast<size_t>(t) * J * 3);
   }
   return out;
 }

@@ -110,26 +110,6 @@ int64_t checkpoint_step(const fs::path& file) {
   return step.item<int64_t>();
 }
 
-// metrics.csv without the wall_time column (the only column allowed to differ).
-std::string metrics_without_wall(const fs::path& p) {
-  std::stringstream in(slurp(p)), out;
-  std::string line;
-  int wall_col = -1;
-  bool header = true;
-  while (std::getline(in, line)) {
-    std::stringstream ls(line);
-    std::string cell, kept;
-    int col = 0;
-    while (std::getline(ls, cell, ',')) {
-      if (header && cell == "wall_time") wall_col = col;
-      if (col != wall_col) kept += cell + ",";
-      ++col;
-    }
-    header = false;
-    out << kept << "\n";
-  }
-  return out.str();
-}
 
 }  // namespace
 

@@ -42,27 +42,6 @@ TEST_CASE("learning-rate schedule: warm-up, step decay, cosine", "[train]") {
 
 namespace {
 
-// metrics.csv without the wall_time column (the only column allowed to differ).
-std::string metrics_without_wall(const fs::path& p) {
-  std::stringstream in(slurp(p)), out;
-  std::string line;
-  int wall_col = -1;
-  bool header = true;
-  while (std::getline(in, line)) {
-    std::stringstream ls(line);
-    std::string cell;
-    int col = 0;
-    std::string kept;
-    while (std::getline(ls, cell, ',')) {
-      if (header && cell == "wall_time") wall_col = col;
-      if (col != wall_col) kept += cell + ",";
-      ++col;
-    }
-    header = false;
-    out << kept << "\n";
-  }
-  return out.str();
-}
 
 }  // namespace
 
