@@ -139,7 +139,7 @@ TEST_CASE("BVH export of fixture clips: forward kinematics of the file returns t
   }
 }
 
-TEST_CASE("BVH export of non-rigid motion: every joint translated, still exact; rigid layout reports its error",
+TEST_CASE("BVH export of non-rigid motion: every joint translated, still exact, rigid layout reports its error",
           "[data][bvh]") {
   // Random positions: no bone keeps its length, nothing is rigid.
   MotionSet m = test::random_motion_set({30, 7}, {"sample"}, 3);
