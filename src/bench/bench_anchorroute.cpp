@@ -17,7 +17,7 @@
 #include "data/skeleton.h"
 #include "models/anchor_adapters.h"
 #include "models/token_prior.h"
-#include "samplers/anchor_loss.h"
+#include "control/anchor_loss.h"
 #include "samplers/anchorroute_generator.h"
 #include "samplers/motion_generator.h"
 #include "samplers/tmd_sampler.h"

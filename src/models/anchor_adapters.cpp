@@ -16,9 +16,9 @@
 #include "models/flow_prior.h"
 #include "models/flow_transformer.h"
 #include "models/token_prior.h"
-#include "samplers/anchor_loss.h"
+#include "control/anchor_loss.h"
 #include "samplers/tmd_sampler.h"
-#include "train/trainable.h"
+#include "models/trainable.h"
 #include "train/trainer.h"
 
 namespace mc {

@@ -11,8 +11,8 @@
 
 #include "core/atomic_file.h"
 #include "core/error.h"
-#include "samplers/prior_source.h"
-#include "train/trainable.h"
+#include "models/prior_source.h"
+#include "models/trainable.h"
 #include "train/trainer.h"
 
 namespace mc {

@@ -6,7 +6,7 @@
 #include <string>
 #include <vector>
 
-#include "samplers/prior_source.h"
+#include "models/prior_source.h"
 #include "models/flow_transformer.h"
 #include "samplers/flow_sampler.h"
 

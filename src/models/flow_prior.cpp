@@ -12,7 +12,7 @@
 #include "core/error.h"
 #include "data/skeleton.h"
 #include "models/text_clip.h"
-#include "train/trainable.h"
+#include "models/trainable.h"
 
 namespace mc {
 namespace nn = torch::nn;

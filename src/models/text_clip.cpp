@@ -15,7 +15,7 @@
 #include "core/error.h"
 #include "models/flow_transformer.h"
 #include "models/token_prior.h"
-#include "train/trainable.h"
+#include "models/trainable.h"
 #include "train/trainer.h"
 
 namespace mc {

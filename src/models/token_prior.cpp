@@ -16,7 +16,7 @@
 #include "models/flow_prior.h"
 #include "models/vq_tokenizer.h"
 #include "train/train_job.h"
-#include "train/trainable.h"
+#include "models/trainable.h"
 
 namespace mc {
 namespace nn = torch::nn;

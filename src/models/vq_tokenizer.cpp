@@ -12,7 +12,7 @@
 #include "core/atomic_file.h"
 #include "core/error.h"
 #include "data/normalizer.h"
-#include "eval/metrics.h"
+#include "data/joints_view.h"
 #include "train/trainer.h"
 
 namespace mc {

@@ -8,7 +8,7 @@
 #include "core/error.h"
 #include "models/anchor_adapters.h"
 #include "models/token_prior.h"
-#include "samplers/anchor_loss.h"
+#include "control/anchor_loss.h"
 #include "samplers/anchorroute_generator.h"
 #include "samplers/motion_generator.h"
 #include "samplers/route_solver.h"

@@ -10,7 +10,7 @@
 
 #include "core/error.h"
 #include "samplers/motion_generator.h"
-#include "samplers/prior_source.h"
+#include "models/prior_source.h"
 #include "samplers/task_observation.h"
 
 namespace mc {

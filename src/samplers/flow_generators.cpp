@@ -6,7 +6,7 @@
 #include "control/control_task.h"
 #include "core/error.h"
 #include "samplers/motion_generator.h"
-#include "samplers/prior_source.h"
+#include "models/prior_source.h"
 #include "samplers/projflow.h"
 #include "samplers/task_observation.h"
 

@@ -20,21 +20,6 @@
 
 namespace mc {
 
-// ---------------------------------------------------------------- registry
-
-static std::map<std::string, TrainableFactory>& trainables() {
-  static std::map<std::string, TrainableFactory> r;
-  return r;
-}
-
-void register_trainable(const std::string& type, TrainableFactory make) { trainables()[type] = std::move(make); }
-
-std::unique_ptr<Trainable> make_trainable(const Component& model, const TrainContext& ctx) {
-  auto it = trainables().find(model.type);
-  if (it == trainables().end()) fail("model type '{}' has no trainer registered", model.type);
-  return it->second(*model.cfg, ctx);
-}
-
 // ---------------------------------------------------------------- schedule
 
 torch::optim::AdamW make_optimizer(const OptimConfig& o, const std::vector<torch::Tensor>& params) {

@@ -5,7 +5,7 @@
 #include <regex>
 
 #include "data/motion_set.h"
-#include "samplers/flow_test_util.h"
+#include "models/flow_prior_test_util.h"
 #include "test_util.h"
 
 using namespace mc;

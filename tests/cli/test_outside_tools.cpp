@@ -13,7 +13,7 @@
 #include "eval/eval_outputs.h"
 #include "eval/metrics.h"
 #include "eval/t2m_evaluator.h"
-#include "samplers/flow_test_util.h"
+#include "models/flow_prior_test_util.h"
 #include "test_util.h"
 
 using namespace mc;

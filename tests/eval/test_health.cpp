@@ -10,7 +10,7 @@
 #include "core/error.h"
 #include "eval/health.h"
 #include "eval/health_test_util.h"
-#include "samplers/flow_test_util.h"
+#include "models/flow_prior_test_util.h"
 #include "test_util.h"
 #include "train/train_job.h"
 

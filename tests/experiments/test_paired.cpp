@@ -15,7 +15,7 @@
 #include "experiments/paired.h"
 #include "experiments/report.h"
 #include "samplers/flow_sampler.h"
-#include "samplers/flow_test_util.h"
+#include "models/flow_prior_test_util.h"
 #include "test_util.h"
 
 using namespace mc;

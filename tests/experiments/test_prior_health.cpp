@@ -9,7 +9,7 @@
 #include "eval/health_test_util.h"
 #include "experiments/prior_health.h"
 #include "experiments/report.h"
-#include "samplers/flow_test_util.h"
+#include "models/flow_prior_test_util.h"
 #include "test_util.h"
 
 using namespace mc;

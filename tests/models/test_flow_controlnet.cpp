@@ -20,9 +20,9 @@
 #include "samplers/flow_test_prior.h"
 #include "samplers/motion_generator.h"
 #include "test_util.h"
-#include "train/motion_dataset.h"
+#include "models/motion_dataset.h"
 #include "train/train_job.h"
-#include "train/trainable.h"
+#include "models/trainable.h"
 
 using namespace mc;
 using namespace mc::test;

@@ -17,10 +17,10 @@
 #include "models/text_clip.h"
 #include "samplers/flow_sampler.h"
 #include "test_util.h"
-#include "train/motion_dataset.h"
+#include "models/motion_dataset.h"
 #include "train/pretrained.h"
 #include "train/train_job.h"
-#include "train/trainable.h"
+#include "models/trainable.h"
 
 using namespace mc;
 using namespace mc::test;

@@ -11,11 +11,11 @@
 #include "control/control_task.h"
 #include "core/error.h"
 #include "models/anchor_adapters.h"
-#include "samplers/anchor_loss.h"
+#include "control/anchor_loss.h"
 #include "samplers/motion_generator.h"
 #include "samplers/tmd_sampler.h"
 #include "test_util.h"
-#include "train/motion_dataset.h"
+#include "models/motion_dataset.h"
 #include "train/train_job.h"
 
 using namespace mc;

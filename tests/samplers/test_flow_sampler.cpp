@@ -13,7 +13,7 @@
 #include "data/skeleton.h"
 #include "samplers/flow_sampler.h"
 #include "test_util.h"
-#include "samplers/flow_test_util.h"
+#include "models/flow_prior_test_util.h"
 #include "train/trainer.h"
 
 using namespace mc;

@@ -13,7 +13,7 @@
 #include "control/linear_observation.h"
 #include "data/fixture/fixture.h"
 #include "data/skeleton.h"
-#include "samplers/flow_test_util.h"
+#include "models/flow_prior_test_util.h"
 #include "samplers/motion_generator.h"
 #include "train/pretrained.h"
 #include "control/control_test_util.h"

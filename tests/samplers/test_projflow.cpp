@@ -10,7 +10,7 @@
 #include "control/projection_solver.h"
 #include "core/error.h"
 #include "data/skeleton.h"
-#include "samplers/flow_test_util.h"
+#include "models/flow_prior_test_util.h"
 #include "samplers/motion_generator.h"
 #include "samplers/projflow.h"
 #include "control/control_test_util.h"

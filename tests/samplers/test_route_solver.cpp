@@ -11,7 +11,7 @@
 #include "core/config.h"
 #include "core/error.h"
 #include "eval/metrics.h"
-#include "samplers/anchor_loss.h"
+#include "control/anchor_loss.h"
 #include "samplers/route_solver.h"
 
 using namespace mc;

@@ -1,5 +1,5 @@
 // Resolving and loading the flow prior a config names.
-#include "samplers/prior_source.h"
+#include "models/prior_source.h"
 
 #include <ostream>
 
