@@ -26,6 +26,9 @@ struct TrainContext {
   const Config* job = nullptr;  // the whole job config, for models that need other sections
   int window = 0;
   bool trim_padding = false;  // data.trim_padding
+  // optim.ema_decay: a model whose buffers follow the live weights (the VQ codebook)
+  // refuses an EMA of them.
+  double ema_decay = 0;
 };
 
 class Trainable {
