@@ -26,6 +26,34 @@ std::mutex& table_mutex() {
 
 }  // namespace
 
+namespace {
+
+// Walks a config tree (sections and components) and hands each section's declared
+// dependencies to the visitor.
+class DependencyWalk : public FieldVisitor {
+ public:
+  explicit DependencyWalk(DependencyVisitor& d) : d_(d) {}
+  void walk(Config& c) {
+    if (auto* declares = dynamic_cast<DeclaresDependencies*>(&c)) declares->dependencies(d_);
+    c.visit(*this);
+  }
+#define MC_IGNORE(T) \
+  void field(const char*, T&, const char*, const Check<T>&) override {}
+  MC_FIELD_TYPES(MC_IGNORE)
+#undef MC_IGNORE
+  void section(const char*, Config& c, const char*) override { walk(c); }
+  void component(const char*, Component& c, const char*) override {
+    if (c.cfg) walk(*c.cfg);
+  }
+
+ private:
+  DependencyVisitor& d_;
+};
+
+}  // namespace
+
+void for_each_dependency(Config& cfg, DependencyVisitor& d) { DependencyWalk(d).walk(cfg); }
+
 void note_trained_run(const std::string& config, const std::vector<std::string>& overrides,
                       const std::string& run_dir) {
   std::lock_guard<std::mutex> lock(table_mutex());

@@ -8,6 +8,8 @@
 #include <string>
 #include <vector>
 
+#include "core/config.h"
+
 namespace mc {
 
 // Receives a section's dependency declarations.
@@ -26,6 +28,10 @@ struct DeclaresDependencies {
   virtual ~DeclaresDependencies() = default;
   virtual void dependencies(DependencyVisitor& d) = 0;
 };
+
+// Gives `d` every dependency `cfg` declares, then those of its sections and
+// components (depth first, in field order).
+void for_each_dependency(Config& cfg, DependencyVisitor& d);
 
 // Records that the dependency (config, overrides), as a config spells them, is the
 // finished run `run_dir`. A later note for the same pair replaces it (the latest

@@ -1,5 +1,5 @@
-// Resolving declared dependencies: a walk over a config tree that trains (or finds)
-// each training config its sections declare and notes the run.
+// Resolving declared dependencies: each training config a config tree's sections
+// declare is trained (or found) and its run noted.
 #include "train/dependencies.h"
 
 #include <ATen/CPUGeneratorImpl.h>
@@ -33,23 +33,10 @@ std::string train_on_demand(const std::string& config, const std::vector<std::st
 
 namespace {
 
-// Walks a config tree (sections and components) and resolves the dependencies each
-// section declares.
-class DependencyResolver : public FieldVisitor, public DependencyVisitor {
+// Trains (or finds) each dependency named by its training config and notes the run.
+class DependencyResolver : public DependencyVisitor {
  public:
   explicit DependencyResolver(std::ostream* log) : log_(log) {}
-  void walk(Config& c) {
-    if (auto* d = dynamic_cast<DeclaresDependencies*>(&c)) d->dependencies(*this);
-    c.visit(*this);
-  }
-#define MC_IGNORE(T) \
-  void field(const char*, T&, const char*, const Check<T>&) override {}
-  MC_FIELD_TYPES(MC_IGNORE)
-#undef MC_IGNORE
-  void section(const char*, Config& c, const char*) override { walk(c); }
-  void component(const char*, Component& c, const char*) override {
-    if (c.cfg) walk(*c.cfg);
-  }
   void operator()(const char* what, std::string& run_dir, std::string& config,
                   std::vector<std::string>& overrides) override {
     if (!run_dir.empty() || config.empty()) return;  // a finished run given, or no dependency
@@ -67,12 +54,13 @@ class DependencyResolver : public FieldVisitor, public DependencyVisitor {
 
 void resolve_dependencies(Config& cfg, std::ostream* log) {
   DependencyResolver r(log);
-  r.walk(cfg);
+  for_each_dependency(cfg, r);
 }
 
 void resolve_dependencies(Component& c, std::ostream* log) {
+  if (!c.cfg) return;
   DependencyResolver r(log);
-  if (c.cfg) r.walk(*c.cfg);
+  for_each_dependency(*c.cfg, r);
 }
 
 }  // namespace mc
