@@ -12,7 +12,8 @@
 #include "data/features.h"
 #include "data/normalizer.h"
 #include "eval/metrics.h"
-#include "train/trainer.h"
+#include "models/trainable.h"
+#include "models/trained_run.h"
 
 namespace mc {
 namespace fs = std::filesystem;
@@ -253,43 +254,22 @@ MC_REGISTER_MODEL("t2m_evaluator", T2MEvaluatorConfig,
 // ---------------------------------------------------------------- loading
 
 T2MEvaluator T2MEvaluator::load(const std::string& run_dir) {
-  fs::path dir(run_dir);
-  fs::path final_pt = dir / "checkpoints" / "final.pt";
-  for (const fs::path& p : {dir / "config.yaml", final_pt, dir / "outputs" / "vocab.txt",
-                            dir / "outputs" / "evaluator_meta.yaml"})
-    if (!fs::exists(p))
-      fail("evaluator run '{}' is incomplete: '{}' is missing; train it with `motionctl train "
-           "configs/eval/evaluator_smoke.yaml` (or point eval.evaluator at a finished evaluator run)",
-           run_dir, p.string());
-  TrainJobConfig job;
-  parse_config(compose_config((dir / "config.yaml").string()), job);
-  if (job.model.type != "t2m_evaluator")
-    fail("'{}' is a run of model type '{}', not an evaluator (t2m_evaluator)", run_dir, job.model.type);
+  TrainedRun run = open_trained_run(
+      run_dir, {"evaluator", {"t2m_evaluator"}, {"vocab.txt", "evaluator_meta.yaml"},
+                "train one with `motionctl train configs/eval/evaluator_smoke.yaml` (or point eval.evaluator at its "
+                "training config)"});
   T2MEvaluator ev;
   ev.run_dir_ = run_dir;
-  ev.cfg_ = job.model.as<T2MEvaluatorConfig>();
-  std::vector<std::string> words;
-  {
-    std::ifstream f(dir / "outputs" / "vocab.txt");
-    for (std::string w; std::getline(f, w);) words.push_back(w);
-  }
-  ev.vocab_ = std::make_shared<TextVocab>(words, (dir / "outputs" / "vocab.txt").string());
-  YAML::Node meta;
-  try {
-    meta = YAML::LoadFile((dir / "outputs" / "evaluator_meta.yaml").string());
+  ev.cfg_ = run.model.as<T2MEvaluatorConfig>();
+  ev.vocab_ = std::make_shared<TextVocab>(run.vocab_words(), run.output("vocab.txt").string());
+  int feature_dim = 0;
+  run.read_meta("evaluator_meta.yaml", [&](const YAML::Node& meta) {
     ev.fps_ = meta["fps"].as<double>();
     ev.skeleton_ = skeleton_from_yaml_text(meta["skeleton"].as<std::string>(), run_dir + "/outputs/evaluator_meta.yaml");
-  } catch (const YAML::Exception& e) {
-    fail("'{}/outputs/evaluator_meta.yaml' is corrupt: {}", run_dir, e.what());
-  }
-  ev.net_ = std::make_shared<T2MEvaluatorNetImpl>(ev.vocab_->size(), meta["feature_dim"].as<int>(), ev.cfg_);
-  try {
-    torch::serialize::InputArchive ar;
-    ar.load_from(final_pt.string());
-    ev.net_->load(ar);
-  } catch (const std::exception&) {  // c10::Error, or torch::jit::ErrorReport on a damaged file
-    fail("evaluator checkpoint '{}' is unreadable or does not match its config.yaml", final_pt.string());
-  }
+    feature_dim = meta["feature_dim"].as<int>();
+  });
+  ev.net_ = std::make_shared<T2MEvaluatorNetImpl>(ev.vocab_->size(), feature_dim, ev.cfg_);
+  run.load_weights(*ev.net_);
   ev.net_->eval();
   return ev;
 }

@@ -16,10 +16,10 @@
 #include "models/flow_prior.h"
 #include "models/flow_transformer.h"
 #include "models/token_prior.h"
-#include "samplers/anchor_loss.h"
-#include "samplers/tmd_sampler.h"
-#include "train/trainable.h"
-#include "train/trainer.h"
+#include "control/anchor_loss.h"
+#include "core/trained_runs.h"
+#include "models/trainable.h"
+#include "models/trained_run.h"
 
 namespace mc {
 namespace nn = torch::nn;
@@ -381,7 +381,7 @@ void freeze(nn::Module& m) {
 class AnchorAdapterTrainer : public Trainable {
  public:
   AnchorAdapterTrainer(const AnchorAdapterConfig& c, const TrainContext& ctx) : cfg_(c), ctx_(ctx) {
-    tmd_run_ = c.tmd_run.empty() ? train_on_demand(c.tmd_config, c.tmd_overrides) : c.tmd_run;
+    tmd_run_ = trained_run("model.tmd", c.tmd_run, c.tmd_config, c.tmd_overrides);
     prior_ = std::make_shared<TokenPrior>(TokenPrior::load(tmd_run_, ctx.device));
     if (!prior_->is_tmd()) fail("model.tmd_run: '{}' is not a tmd_prior run", tmd_run_);
     prior_->tokenizer().check_compatible(ctx.data->set(), ctx.data->source());
@@ -580,36 +580,17 @@ MC_REGISTER_MODEL("anchor_adapter", AnchorAdapterConfig, make_adapter_trainer,
 // ---------------------------------------------------------------- loading
 
 LoadedAnchorAdapter load_anchor_adapter(const std::string& run_dir, torch::Device device) {
-  fs::path dir(run_dir);
-  fs::path final_pt = dir / "checkpoints" / "final.pt", meta_path = dir / "outputs" / kMetaFile;
-  for (const fs::path& p : {dir / "config.yaml", final_pt, meta_path})
-    if (!fs::exists(p))
-      fail("anchor adapter run '{}' is incomplete: '{}' is missing; train it with `motionctl train "
-           "configs/adapter/anchorkv_tiny.yaml` (or set adapter_config to train on demand)",
-           run_dir, p.string());
-  TrainJobConfig job;
-  parse_config(compose_config((dir / "config.yaml").string()), job);
-  if (job.model.type != "anchor_adapter")
-    fail("'{}' is a run of model type '{}', not an anchor_adapter", run_dir, job.model.type);
+  TrainedRun run = open_trained_run(run_dir, {"anchor adapter", {"anchor_adapter"}, {kMetaFile},
+                                              "train one with `motionctl train configs/adapter/anchorkv_tiny.yaml` "
+                                              "(or set adapter_config to train it first)"});
   LoadedAnchorAdapter out;
   out.run_dir = run_dir;
-  out.cfg = dynamic_cast<const AnchorAdapterConfig&>(*job.model.cfg);
+  out.cfg = run.model.as<AnchorAdapterConfig>();
   std::string tmd_run;
-  try {
-    YAML::Node meta = YAML::LoadFile(meta_path.string());
-    tmd_run = meta["tmd_run"].as<std::string>();
-  } catch (const YAML::Exception& e) {
-    fail("'{}' is corrupt: {}", meta_path.string(), e.what());
-  }
+  run.read_meta(kMetaFile, [&](const YAML::Node& meta) { tmd_run = meta["tmd_run"].as<std::string>(); });
   out.prior = std::make_shared<TokenPrior>(TokenPrior::load(tmd_run, device));
   out.module = make_anchor_adapter(out.cfg, out.prior->net()->transformer, out.prior->stride());
-  try {
-    torch::serialize::InputArchive ar;
-    ar.load_from(final_pt.string());
-    out.module->load(ar);
-  } catch (const std::exception&) {  // c10::Error, or torch::jit::ErrorReport on a damaged file
-    fail("anchor adapter checkpoint '{}' is unreadable or does not match its config.yaml", final_pt.string());
-  }
+  run.load_weights(*out.module);
   out.module->to(device);
   out.module->eval();
   out.trainable_parameters = count_parameters(*out.module);

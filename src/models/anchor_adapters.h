@@ -10,6 +10,7 @@
 
 #include "control/anchors.h"
 #include "core/config.h"
+#include "core/trained_runs.h"
 #include "models/token_transformer.h"
 
 namespace mc {
@@ -49,7 +50,7 @@ struct AdapterFeatureConfig : Config {
 
 // `model:` section of a controlled-training run (model.type = anchor_adapter).
 // Defaults and the readings behind them: docs/choices.md ("AnchorRoute: adapters").
-struct AnchorAdapterConfig : Config {
+struct AnchorAdapterConfig : Config, DeclaresDependencies {
   std::string adapter = "anchorkv";  // anchorkv | cross_attention | controlnet (Table IV)
   int memory_width = 0;              // d_s of H^s; 0 = the backbone's width (eq. (13): H^s in R^{L x d})
   int encoder_blocks = 2;            // residual conv blocks after the scaffold encoder's downsampling
@@ -76,6 +77,7 @@ struct AnchorAdapterConfig : Config {
   std::vector<std::string> tmd_overrides;
 
   void visit(FieldVisitor& v) override;
+  void dependencies(DependencyVisitor& d) override { d("model.tmd", tmd_run, tmd_config, tmd_overrides); }
   std::string validate() const override;
 };
 

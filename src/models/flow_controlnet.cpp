@@ -11,9 +11,9 @@
 
 #include "core/atomic_file.h"
 #include "core/error.h"
-#include "samplers/prior_source.h"
-#include "train/trainable.h"
-#include "train/trainer.h"
+#include "models/prior_source.h"
+#include "models/trainable.h"
+#include "models/trained_run.h"
 
 namespace mc {
 namespace nn = torch::nn;
@@ -127,36 +127,14 @@ FlowControlNet FlowControlNet::around(FlowPrior base) {
 }
 
 FlowControlNet FlowControlNet::load(const std::string& run_dir, torch::Device device) {
-  fs::path dir(run_dir);
-  fs::path final_pt = dir / "checkpoints" / "final.pt", meta = dir / "outputs" / "controlnet_meta.yaml";
-  if (!fs::is_directory(dir))
-    fail("ControlNet run directory '{}' does not exist; train one with `motionctl train "
-         "configs/prior/flow_controlnet_tiny.yaml`",
-         run_dir);
-  for (const fs::path& p : {dir / "config.yaml", final_pt, meta})
-    if (!fs::exists(p))
-      fail("ControlNet run '{}' is incomplete: '{}' is missing; finish it with `motionctl train {}/config.yaml`",
-           run_dir, p.string(), run_dir);
-  TrainJobConfig job;
-  parse_config(compose_config((dir / "config.yaml").string()), job);
-  if (job.model.type != "flow_controlnet")
-    fail("'{}' is a run of model type '{}', not a ControlNet (flow_controlnet)", run_dir, job.model.type);
+  TrainedRun run = open_trained_run(
+      run_dir, {"ControlNet", {"flow_controlnet"}, {"controlnet_meta.yaml"},
+                "train one with `motionctl train configs/prior/flow_controlnet_tiny.yaml`"});
   std::string base_run;
-  try {
-    base_run = YAML::LoadFile(meta.string())["base_run"].as<std::string>();
-  } catch (const YAML::Exception& e) {
-    fail("'{}' is corrupt: {}", meta.string(), e.what());
-  }
+  run.read_meta("controlnet_meta.yaml", [&](const YAML::Node& meta) { base_run = meta["base_run"].as<std::string>(); });
   FlowControlNet n = around(FlowPrior::load(base_run, device));
   n.run_dir_ = run_dir;
-  try {
-    torch::serialize::InputArchive ar;
-    ar.load_from(final_pt.string());
-    (*n.branch_)->load(ar);
-  } catch (const std::exception&) {  // c10::Error, or torch::jit::ErrorReport on a damaged file
-    fail("ControlNet checkpoint '{}' is unreadable or does not match its base prior '{}'", final_pt.string(),
-         base_run);
-  }
+  run.load_weights(**n.branch_, fmt::format("its base prior '{}'", base_run));
   (*n.branch_)->to(device);
   (*n.branch_)->eval();
   return n;
@@ -226,17 +204,7 @@ namespace {
 class FlowControlNetTrainer : public Trainable {
  public:
   FlowControlNetTrainer(const FlowControlNetConfig& c, const TrainContext& ctx) : cfg_(c), ctx_(ctx) {
-    {
-      // Training the base on demand reseeds torch and may change its thread count;
-      // restoring both keeps this run's result independent of whether the base was
-      // trained now or earlier.
-      auto gen = at::detail::getDefaultCPUGenerator();
-      auto rng = gen.get_state();
-      const int threads = torch::get_num_threads();
-      base_run_ = resolve_prior_run(c.base, &std::cerr);
-      gen.set_state(rng);
-      torch::set_num_threads(threads);
-    }
+    base_run_ = c.base.run();  // trained first by the job when named by its config
     net_ = FlowControlNet::around(FlowPrior::load(base_run_, ctx.device));
     const FlowPrior& base = net_.base();
     if (base.num_joints() != ctx.data->num_joints())

@@ -6,9 +6,9 @@
 #include <string>
 #include <vector>
 
-#include "samplers/prior_source.h"
+#include "models/flow_prior.h"
 #include "models/flow_transformer.h"
-#include "samplers/flow_sampler.h"
+#include "models/prior_source.h"
 
 namespace mc {
 

@@ -3,7 +3,7 @@
 // training loop trains a real model; also a useful smoothness/compression probe.
 #include "core/error.h"
 #include "models/conv_motion.h"
-#include "train/trainable.h"
+#include "models/trainable.h"
 
 namespace mc {
 namespace {

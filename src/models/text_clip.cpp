@@ -15,8 +15,9 @@
 #include "core/error.h"
 #include "models/flow_transformer.h"
 #include "models/token_prior.h"
-#include "train/trainable.h"
-#include "train/trainer.h"
+#include "core/trained_runs.h"
+#include "models/trainable.h"
+#include "models/trained_run.h"
 
 namespace mc {
 namespace nn = torch::nn;
@@ -154,25 +155,15 @@ std::vector<double> clip_retrieval(const torch::Tensor& text, const torch::Tenso
 // ---------------------------------------------------------------- runs
 
 TextClipRun read_text_clip_run(const std::string& run_dir) {
-  fs::path dir(run_dir);
-  if (!fs::is_directory(dir))
-    fail("text_clip run directory '{}' does not exist; train one with `motionctl train "
-         "configs/text/text_clip_tiny.yaml` or set model.text_encoder.config to train it on demand",
-         run_dir);
-  for (const fs::path& p : {dir / "config.yaml", dir / "checkpoints" / "final.pt", dir / "outputs" / "vocab.txt"})
-    if (!fs::exists(p))
-      fail("text_clip run '{}' is incomplete: '{}' is missing; finish it with `motionctl train {}/config.yaml`",
-           run_dir, p.string(), run_dir);
-  TrainJobConfig job;
-  parse_config(compose_config((dir / "config.yaml").string()), job);
-  if (job.model.type != "text_clip")
-    fail("'{}' is a run of model type '{}', not a contrastive text encoder (text_clip)", run_dir, job.model.type);
+  TrainedRun run = open_trained_run(
+      run_dir, {"contrastive text encoder", {"text_clip"}, {"vocab.txt"},
+                "train one with `motionctl train configs/text/text_clip_tiny.yaml` or set model.text_encoder.config "
+                "to train it first"});
   TextClipRun r;
   r.run_dir = run_dir;
-  r.cfg = job.model.as<TextClipConfig>();
-  std::ifstream f(dir / "outputs" / "vocab.txt");
-  for (std::string w; std::getline(f, w);) r.vocab.push_back(w);
-  TextVocab check(r.vocab, (dir / "outputs" / "vocab.txt").string());  // UserError when malformed
+  r.cfg = run.model.as<TextClipConfig>();
+  r.vocab = run.vocab_words();
+  TextVocab check(r.vocab, run.output("vocab.txt").string());  // UserError when malformed
   (void)check;
   return r;
 }
@@ -183,9 +174,7 @@ std::string resolve_text_clip_run(const TextEncoderSourceConfig& src, std::ostre
     return src.run_dir;
   }
   if (src.config.empty()) fail("model.text_encoder: set run_dir (a finished text_clip run) or config");
-  std::string dir = train_on_demand(src.config, src.overrides);
-  if (log) *log << fmt::format("text encoder: {} (from {})\n", dir, src.config);
-  return dir;
+  return trained_run("model.text_encoder", src.run_dir, src.config, src.overrides);
 }
 
 void load_text_clip_encoder(const TextClipRun& run, torch::nn::Module& enc, const TextEncoderOptions& want,

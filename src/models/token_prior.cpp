@@ -1,5 +1,6 @@
 // The token priors' configs, text encoder and network bundle, the TMD corruption
-// maths, and one trainer for both `tmd_prior` (eqs. (17)-(20)) and `masked_prior`.
+// maths, one trainer for both `tmd_prior` (eqs. (17)-(20)) and `masked_prior`, and
+// the trained prior loaded from its run directory.
 #include "models/token_prior.h"
 
 #include <ATen/CPUGeneratorImpl.h>
@@ -7,16 +8,16 @@
 
 #include <algorithm>
 #include <cmath>
-#include <mutex>
 
 #include "core/atomic_file.h"
 #include "core/error.h"
 #include "data/skeleton.h"
 #include "data/text_vocab.h"
 #include "models/flow_prior.h"
+#include "models/trained_run.h"
 #include "models/vq_tokenizer.h"
-#include "train/train_job.h"
-#include "train/trainable.h"
+#include "core/trained_runs.h"
+#include "models/trainable.h"
 
 namespace mc {
 namespace nn = torch::nn;
@@ -263,28 +264,8 @@ TokenizedClips tokenize_clips(VqTokenizerImpl& tok, const MotionSet& set, torch:
   return out;
 }
 
-std::string train_on_demand(const std::string& config, const std::vector<std::string>& overrides) {
-  // A run that trains reseeds torch and sets its thread count, one that is already done
-  // does not: restoring both keeps the caller's random stream independent of which.
-  auto gen = at::detail::getDefaultCPUGenerator();
-  torch::Tensor state;
-  {
-    std::lock_guard<std::mutex> lock(gen.mutex());
-    state = gen.get_state();
-  }
-  const int threads = torch::get_num_threads();
-  auto dir = run_train(config, overrides).run_dir.string();
-  {
-    std::lock_guard<std::mutex> lock(gen.mutex());
-    gen.set_state(state);
-  }
-  torch::set_num_threads(threads);
-  return dir;
-}
-
 std::string resolve_tokenizer_run(const TokenPriorConfig& c) {
-  if (!c.tokenizer_run.empty()) return c.tokenizer_run;
-  return train_on_demand(c.tokenizer_config, c.tokenizer_overrides);
+  return trained_run("model.tokenizer", c.tokenizer_run, c.tokenizer_config, c.tokenizer_overrides);
 }
 
 // ---------------------------------------------------------------- trainer
@@ -496,5 +477,97 @@ MC_REGISTER_MODEL("tmd_prior", TmdPriorConfig, make_token_trainer,
                   "AnchorRoute's TMD prior: metric discrete flow over VQ tokens, dual-context text (eqs. (17)-(20))");
 MC_REGISTER_MODEL("masked_prior", MaskedPriorConfig, make_token_trainer,
                   "MoMask-style masked token prior (cosine masking) on the TMD backbone and tokenizer");
+
+// ---------------------------------------------------------------- the trained prior
+
+TokenPrior TokenPrior::load(const std::string& run_dir, torch::Device device) {
+  TrainedRun run = open_trained_run(
+      run_dir, {"token prior", {"tmd_prior", "masked_prior"}, {"vocab.txt", "prior_meta.yaml"},
+                "train one with `motionctl train configs/tmd/tmd_tiny.yaml` (or configs/masked/masked_tiny.yaml), "
+                "or set prior_config to train it first"});
+  TokenPrior p;
+  p.run_dir_ = run_dir;
+  p.device_ = device;
+  p.cfg_ = std::dynamic_pointer_cast<TokenPriorConfig>(run.model.cfg);
+  p.vocab_ = std::make_shared<TextVocab>(run.vocab_words(), run.output("vocab.txt").string());
+  std::string tokenizer_run;
+  int64_t K = 0;
+  run.read_meta("prior_meta.yaml", [&](const YAML::Node& meta) {
+    p.t_max_ = meta["t_max"].as<int>();
+    tokenizer_run = meta["tokenizer_run"].as<std::string>();
+    K = meta["codebook_size"].as<int64_t>();
+  });
+  p.tok_ = load_vq_tokenizer(tokenizer_run, device);
+  if (p.tok_.model->codebook_size() != K)
+    fail("token prior '{}' was trained on {} codes but its tokenizer '{}' now has {}; retrain the prior", run_dir, K,
+         tokenizer_run, p.tok_.model->codebook_size());
+  p.net_ = std::make_shared<TokenPriorNet>(p.vocab_->size(), K, *p.cfg_);
+  run.load_weights(**p.net_);
+  (*p.net_)->to(device);
+  (*p.net_)->eval();
+  // The codes the prior learned are only meaningful with the codebook it was trained on.
+  torch::Tensor d_now;
+  if (auto* t = dynamic_cast<const TmdPriorConfig*>(p.cfg_.get()))
+    d_now = tmd_path_table(p.tok_.model->codebook(), t->path, t->beta_c, t->beta_a).dist.to(device);
+  else
+    d_now = p.tok_.model->token_distance_table().to(device);
+  if (!torch::allclose((*p.net_)->distance, d_now, 1e-4, 1e-4))
+    fail("the tokenizer '{}' no longer has the codebook token prior '{}' was trained with (distance tables differ); "
+         "retrain the prior on this tokenizer",
+         tokenizer_run, run_dir);
+  return p;
+}
+
+const TmdPriorConfig& TokenPrior::tmd_config() const {
+  auto* t = dynamic_cast<const TmdPriorConfig*>(cfg_.get());
+  if (!t) throw std::logic_error("token prior '" + run_dir_ + "' is a masked prior, not TMD");
+  return *t;
+}
+
+// ---------------------------------------------------------------- logits
+
+TextContext TokenPrior::encode_texts(const std::vector<std::string>& captions) const {
+  torch::NoGradGuard ng;
+  auto enc = encode_captions(*vocab_, captions, cfg_->max_words);
+  return (*net_)->encode_text(enc.ids.to(device_), enc.lengths.to(device_));
+}
+
+TextContext TokenPrior::null_texts(int64_t B, int64_t W) const {
+  torch::NoGradGuard ng;
+  return (*net_)->null_context(B, W);
+}
+
+torch::Tensor TokenPrior::raw_logits(const torch::Tensor& ids, const torch::Tensor& t, const TextContext& text,
+                                     const torch::Tensor& valid, const TokenTransformerHooks* hooks) const {
+  torch::Tensor tt;
+  if (is_tmd()) tt = t.to(device_, torch::kFloat32).reshape({-1}).expand({ids.size(0)});
+  return (*net_)->transformer->forward(ids.to(device_), tt, text, valid.to(device_), hooks).logits;
+}
+
+torch::Tensor TokenPrior::guided_logits(const torch::Tensor& ids, const torch::Tensor& t, const TextContext& text,
+                                        const torch::Tensor& valid, double cfg_scale,
+                                        const TokenTransformerHooks* hooks) const {
+  torch::NoGradGuard ng;
+  const int64_t B = ids.size(0), W = text.memory.size(1);
+  torch::Tensor tt;
+  if (is_tmd()) tt = t.to(device_, torch::kFloat32).reshape({-1}).expand({B});
+  // Hooks in both halves unless hooks->guidance says otherwise (AnchorRoute's anchor guidance).
+  auto l = guided_token_logits(*(*net_)->transformer, ids.to(device_), tt, text, null_texts(B, W), valid.to(device_),
+                               cfg_scale, hooks);
+  auto v = valid.to(device_, torch::kBool).unsqueeze(-1).expand_as(l);
+  if (!torch::isfinite(l.masked_select(v)).all().item<bool>())
+    fail("the token prior '{}' produced non-finite logits; the checkpoint is broken or diverged — retrain it "
+         "(lower optim.lr) before sampling",
+         run_dir_);
+  return l;
+}
+
+torch::Tensor TokenPrior::decode_world(const torch::Tensor& ids) const {
+  torch::NoGradGuard ng;
+  const int64_t L = ids.size(0);
+  VqTokenizer model = tok_.model;  // a handle: decode() is not const
+  auto x = model->decode(ids.to(device_).view({1, L}));  // [1, L*s, J*3] normalised
+  return tok_.model->denormalize(x.view({L * stride(), num_joints(), 3})).to(torch::kCPU);
+}
 
 }  // namespace mc

@@ -12,8 +12,9 @@
 #include "core/atomic_file.h"
 #include "core/error.h"
 #include "data/normalizer.h"
-#include "eval/metrics.h"
-#include "train/trainer.h"
+#include "data/joints_view.h"
+#include "models/trainable.h"
+#include "models/trained_run.h"
 
 namespace mc {
 namespace F = torch::nn::functional;
@@ -311,10 +312,10 @@ class VqTokenizerTrainer : public Trainable {
       fail("data.window = {} must be a multiple of {} (2^model.down_stages)", ctx.window, stride_);
     // The codebook is a buffer tracking the live encoder; the trainer's weight EMA
     // would swap in averaged encoder weights at the end that the codebook never saw.
-    if (auto* job = dynamic_cast<const TrainJobConfig*>(ctx.job); job && job->optim.ema_decay > 0)
+    if (ctx.ema_decay > 0)
       fail("model vq_tokenizer needs optim.ema_decay = 0 (got {}): its EMA codebook follows the live encoder, "
            "so averaged final weights would not match it",
-           job->optim.ema_decay);
+           ctx.ema_decay);
   }
   torch::nn::Module& module() override { return *model_; }
 
@@ -565,46 +566,22 @@ void LoadedVqTokenizer::check_compatible(const MotionSet& m, const std::string& 
 }
 
 LoadedVqTokenizer load_vq_tokenizer(const std::string& run_dir, torch::Device device) {
-  fs::path dir(run_dir);
-  fs::path final_pt = dir / "checkpoints" / "final.pt";
-  fs::path meta_file = dir / "outputs" / kMetaFile;
-  if (!fs::is_directory(dir)) fail("tokenizer run '{}' does not exist", run_dir);
-  for (const fs::path& p : {dir / "config.yaml", final_pt, meta_file})
-    if (!fs::exists(p))
-      fail("tokenizer run '{}' is incomplete: '{}' is missing; finish it with `motionctl train "
-           "configs/tokenizer/vq_tiny.yaml` (or point at a finished vq_tokenizer run)",
-           run_dir, p.string());
-  TrainJobConfig job;
-  parse_config(compose_config((dir / "config.yaml").string()), job);
-  if (job.model.type != "vq_tokenizer")
-    fail("'{}' is a run of model type '{}', not a tokenizer (vq_tokenizer)", run_dir, job.model.type);
+  TrainedRun run = open_trained_run(run_dir, {"tokenizer", {"vq_tokenizer"}, {kMetaFile},
+                                              "train one with `motionctl train configs/tokenizer/vq_tiny.yaml`"});
   LoadedVqTokenizer out;
   out.run_dir = run_dir;
-  out.cfg = job.model.as<VqTokenizerConfig>();
+  out.cfg = run.model.as<VqTokenizerConfig>();
   int num_joints = 0;
-  try {
-    YAML::Node meta = YAML::LoadFile(meta_file.string());
+  const std::string meta_file = run.output(kMetaFile).string();
+  run.read_meta(kMetaFile, [&](const YAML::Node& meta) {
     num_joints = meta["num_joints"].as<int>();
     out.fps = meta["fps"].as<double>();
-    out.skeleton = skeleton_from_yaml_text(meta["skeleton"].as<std::string>(), meta_file.string());
-  } catch (const YAML::Exception& e) {
-    fail("'{}' is corrupt: {}", meta_file.string(), e.what());
-  }
+    out.skeleton = skeleton_from_yaml_text(meta["skeleton"].as<std::string>(), meta_file);
+  });
   if (num_joints != out.skeleton.num_joints())
-    fail("'{}' is corrupt: num_joints {} but its skeleton has {}", meta_file.string(), num_joints,
-         out.skeleton.num_joints());
+    fail("'{}' is corrupt: num_joints {} but its skeleton has {}", meta_file, num_joints, out.skeleton.num_joints());
   out.model = VqTokenizer(vq_tokenizer_options(out.cfg, out.skeleton));
-  try {
-    torch::serialize::InputArchive ar;
-    ar.load_from(final_pt.string());
-    out.model->load(ar);
-  } catch (const c10::Error& e) {
-    fail("tokenizer checkpoint '{}' is unreadable or does not match its config.yaml ({})", final_pt.string(),
-         std::string(e.what_without_backtrace()).substr(0, 200));
-  } catch (const std::exception& e) {  // torch::jit::ErrorReport on a damaged file
-    fail("tokenizer checkpoint '{}' is unreadable or does not match its config.yaml ({})", final_pt.string(),
-         std::string(e.what()).substr(0, 200));
-  }
+  run.load_weights(*out.model);
   out.model->to(device);
   out.model->eval();
   return out;

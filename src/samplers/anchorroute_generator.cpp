@@ -6,9 +6,10 @@
 
 #include "control/anchors.h"
 #include "core/error.h"
+#include "core/trained_runs.h"
 #include "models/anchor_adapters.h"
 #include "models/token_prior.h"
-#include "samplers/anchor_loss.h"
+#include "control/anchor_loss.h"
 #include "samplers/anchorroute_generator.h"
 #include "samplers/motion_generator.h"
 #include "samplers/route_solver.h"
@@ -152,9 +153,15 @@ void AnchorRouteGeneratorConfig::visit(FieldVisitor& v) {
   v("guidance", guidance, "how CFG treats the anchors (defaults: anchors in both passes, no anchor term)");
 }
 
+void AnchorRouteGeneratorConfig::dependencies(DependencyVisitor& d) {
+  d("adapter", adapter_run, adapter_config, adapter_overrides);
+  // The TMD prior alone is used (and so trained first) only without an adapter.
+  if (adapter_run.empty() && adapter_config.empty()) d("prior", prior_run, prior_config, prior_overrides);
+}
+
 std::unique_ptr<MotionGenerator> AnchorRouteGeneratorConfig::make(const GeneratorContext& ctx) const {
   std::string run = adapter_run;
-  if (run.empty() && !adapter_config.empty()) run = train_on_demand(adapter_config, adapter_overrides);
+  if (run.empty() && !adapter_config.empty()) run = trained_run("adapter", adapter_run, adapter_config, adapter_overrides);
   if (!run.empty()) {
     auto a = load_anchor_adapter(run, ctx.device);
     return std::make_unique<AnchorRouteGenerator>(a.prior, a.module, a.cfg, run, sampler, route, route_batch,
@@ -163,7 +170,7 @@ std::unique_ptr<MotionGenerator> AnchorRouteGeneratorConfig::make(const Generato
   std::string p = prior_run;
   if (p.empty()) {
     if (prior_config.empty()) fail("generator anchorroute: set adapter_run/adapter_config or prior_run/prior_config");
-    p = train_on_demand(prior_config, prior_overrides);
+    p = trained_run("prior", prior_run, prior_config, prior_overrides);
   }
   auto prior = std::make_shared<TokenPrior>(TokenPrior::load(p, ctx.device));
   if (!prior->is_tmd()) fail("generator anchorroute: '{}' is not a tmd_prior run", p);

@@ -7,6 +7,7 @@
 #include <vector>
 
 #include "core/config.h"
+#include "core/trained_runs.h"
 #include "models/token_transformer.h"
 #include "samplers/motion_generator.h"
 #include "samplers/route_solver.h"
@@ -35,7 +36,7 @@ struct AnchorGuidanceConfig : Config {
   HookGuidance hooks() const { return {anchors == "both", scale}; }
 };
 
-struct AnchorRouteGeneratorConfig : GeneratorConfig {
+struct AnchorRouteGeneratorConfig : GeneratorConfig, DeclaresDependencies {
   std::string adapter_run;
   std::string adapter_config;
   std::vector<std::string> adapter_overrides;
@@ -47,6 +48,7 @@ struct AnchorRouteGeneratorConfig : GeneratorConfig {
   int route_batch = 16;
   AnchorGuidanceConfig guidance;
   void visit(FieldVisitor& v) override;
+  void dependencies(DependencyVisitor& d) override;
   std::unique_ptr<MotionGenerator> make(const GeneratorContext& ctx) const override;
 };
 

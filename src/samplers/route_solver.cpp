@@ -6,7 +6,7 @@
 #include <random>
 
 #include "core/error.h"
-#include "samplers/anchor_loss.h"
+#include "control/anchor_loss.h"
 
 namespace mc {
 

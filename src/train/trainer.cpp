@@ -17,23 +17,9 @@
 #include "core/atomic_file.h"
 #include "core/error.h"
 #include "core/interrupt.h"
+#include "train/dependencies.h"
 
 namespace mc {
-
-// ---------------------------------------------------------------- registry
-
-static std::map<std::string, TrainableFactory>& trainables() {
-  static std::map<std::string, TrainableFactory> r;
-  return r;
-}
-
-void register_trainable(const std::string& type, TrainableFactory make) { trainables()[type] = std::move(make); }
-
-std::unique_ptr<Trainable> make_trainable(const Component& model, const TrainContext& ctx) {
-  auto it = trainables().find(model.type);
-  if (it == trainables().end()) fail("model type '{}' has no trainer registered", model.type);
-  return it->second(*model.cfg, ctx);
-}
 
 // ---------------------------------------------------------------- schedule
 
@@ -376,7 +362,10 @@ TrainResult train(TrainJobConfig& job, const std::vector<std::string>& overrides
   // claimed, so a failed start leaves no directory (an explicit run.name stays free).
   torch::Device device = setup_torch(job.run);
   auto data = MotionDataset::load(resolve_data_path(job.data.path));
-  TrainContext ctx{data, device, &job, job.data.window, job.data.trim_padding};
+  TrainContext ctx{data, device, &job, job.data.window, job.data.trim_padding, job.optim.ema_decay};
+  // The components the model is built on (a frozen base, a tokenizer, a text
+  // encoder) are trained here, by the job, if missing; the model only loads them.
+  resolve_dependencies(job.model);
   auto trainable = make_trainable(job.model, ctx);
   data->split("train");  // UserError naming the file and split when empty
   for (const auto& s : trainable->evaluation_splits()) data->split(s);

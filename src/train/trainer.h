@@ -6,8 +6,8 @@
 
 #include "core/config.h"
 #include "core/run_dir.h"
-#include "train/motion_dataset.h"
-#include "train/trainable.h"
+#include "models/motion_dataset.h"
+#include "models/trainable.h"
 
 namespace mc {
 

@@ -13,6 +13,7 @@
 #include "core/h5_seal.h"
 #include "data/motion_set.h"
 #include "data_test_util.h"
+#include "test_util.h"
 
 using namespace mc;
 using namespace mc::test;
@@ -38,16 +39,6 @@ MotionSet full_motion_set() {
   m.stats = s;
   m.vocab = {"<pad>", "<unk>", "<sos>", "<eos>", "walks", "person", "ça"};
   return m;
-}
-
-template <class F>
-std::string user_error_of(F&& f) {
-  try {
-    f();
-  } catch (const UserError& e) {
-    return e.what();
-  }
-  return "<no UserError thrown>";
 }
 
 std::vector<char> file_bytes(const std::string& path) {

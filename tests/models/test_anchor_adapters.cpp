@@ -9,7 +9,7 @@
 #include "core/error.h"
 #include "models/anchor_adapters.h"
 #include "models/vq_tokenizer.h"
-#include "samplers/anchor_loss.h"
+#include "control/anchor_loss.h"
 
 using namespace mc;
 

@@ -1,15 +1,17 @@
-// Naming a flow prior in a config (a finished run, or its training config trained
-// on demand) and loading it: shared by `motionctl sample` and every flow generator.
+// Naming a flow prior in a config (a finished run, or its training config, trained
+// first by the job: train/dependencies.h) and loading it: shared by `motionctl
+// sample`, every flow generator and the ControlNet's frozen base.
 #pragma once
 #include <string>
 #include <vector>
 
 #include "core/config.h"
-#include "samplers/flow_sampler.h"
+#include "core/trained_runs.h"
+#include "models/flow_prior.h"
 
 namespace mc {
 
-struct PriorSourceConfig : Config {
+struct PriorSourceConfig : Config, DeclaresDependencies {
   std::string run_dir;                 // a finished flow_prior run; wins over `config`
   std::string config;                  // else its training config, trained first when not finished
   std::vector<std::string> overrides;  // overrides for `config`
@@ -19,17 +21,16 @@ struct PriorSourceConfig : Config {
       "unless already finished");
     v("overrides", overrides, "key=value overrides applied to `config`");
   }
+  void dependencies(DependencyVisitor& d) override { d("prior", run_dir, config, overrides); }
   std::string validate() const override {
     if (run_dir.empty() && config.empty()) return "set prior.run_dir (a finished flow_prior run) or prior.config";
     return "";
   }
+  // The run directory: run_dir, or the run of `config` the job resolved.
+  std::string run() const;
 };
 
-// The run directory `src` names, training it first when only a config is given
-// and its run is not finished. `log` (may be null) gets one line saying which.
-std::string resolve_prior_run(const PriorSourceConfig& src, std::ostream* log = nullptr);
-
-// resolve_prior_run + FlowPrior::load.
-FlowPrior load_flow_prior(const PriorSourceConfig& src, torch::Device device, std::ostream* log = nullptr);
+// FlowPrior::load(src.run()).
+FlowPrior load_flow_prior(const PriorSourceConfig& src, torch::Device device);
 
 }  // namespace mc

@@ -1,5 +1,5 @@
 // Normalised, cropped, padded batches from a motion file.
-#include "train/motion_dataset.h"
+#include "models/motion_dataset.h"
 
 #include "core/error.h"
 

@@ -1,8 +1,26 @@
-// Tokenizer reconstruction error: MPJPE in metres over the valid frames.
+// Checked joint views and the tokenizer reconstruction error (MPJPE in metres over
+// the valid frames).
+#include "data/joints_view.h"
+
 #include "core/error.h"
-#include "eval/metrics.h"
 
 namespace mc {
+
+JointsView joints_view(const std::vector<float>& data, int frames, int joints, int length, const std::string& what) {
+  if (frames < 0 || joints < 1) fail("{}: invalid shape [{}, {}, 3]", what, frames, joints);
+  const size_t expected = static_cast<size_t>(frames) * joints * 3;
+  if (data.size() != expected)
+    fail("{}: {} values do not form [{}, {}, 3] (expected {})", what, data.size(), frames, joints, expected);
+  if (length < 0) length = frames;
+  if (length > frames) fail("{}: length {} exceeds the {} stored frames", what, length, frames);
+  return JointsView{data.data(), frames, joints, length};
+}
+
+JointsView joints_view(const MotionSet& set, size_t i) {
+  if (i >= set.size()) fail("motion set has {} clips, no clip {}", set.size(), i);
+  if (set.lengths[i] > set.t_max) fail("clip {}: length {} exceeds t_max {}", i, set.lengths[i], set.t_max);
+  return JointsView{set.clip(i), set.t_max, set.num_joints(), set.lengths[i]};
+}
 
 double reconstruction_mpjpe(const std::vector<JointsView>& reconstruction, const std::vector<JointsView>& ground_truth,
                             bool root_aligned, int root) {

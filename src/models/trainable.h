@@ -1,6 +1,7 @@
 // The plug-in point of the generic training loop: every trainable model (flow
 // prior, tokenizer, TMD, adapters, evaluator, autoencoder) implements Trainable
-// and registers under its `model.type`.
+// and registers under its `model.type`. It sits with the models that implement it;
+// the loop that drives it (train/trainer.h) is a layer above.
 #pragma once
 #include <functional>
 #include <map>
@@ -10,7 +11,7 @@
 
 #include "core/config.h"
 #include "core/run_dir.h"
-#include "train/motion_dataset.h"
+#include "models/motion_dataset.h"
 
 namespace mc {
 
@@ -25,6 +26,9 @@ struct TrainContext {
   const Config* job = nullptr;  // the whole job config, for models that need other sections
   int window = 0;
   bool trim_padding = false;  // data.trim_padding
+  // optim.ema_decay: a model whose buffers follow the live weights (the VQ codebook)
+  // refuses an EMA of them.
+  double ema_decay = 0;
 };
 
 class Trainable {

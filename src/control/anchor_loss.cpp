@@ -1,6 +1,6 @@
 // Batched anchor residuals and losses (eqs. (3), (10), (11)) by one gather over
 // the flattened (frame, joint) axis.
-#include "samplers/anchor_loss.h"
+#include "control/anchor_loss.h"
 
 #include "core/error.h"
 
