@@ -98,7 +98,7 @@ void bench_anchorroute(const AnchorrouteBenchOptions& o, std::ostream& out) {
     auto feats = torch::zeros({batch, L * s, adapter_feature_width(a.cfg.body_joints)});
     auto valid = torch::zeros({batch, L}, torch::kBool);
     for (int64_t i = 0; i < batch; ++i) {
-      feats[i].narrow(0, 0, sets[i].frames).copy_(adapter_features(sets[i], a.cfg.body_joints));
+      feats[i].narrow(0, 0, sets[i].frames).copy_(adapter_features(sets[i], a.cfg.body_joints, a.cfg.features.delta_scale));
       valid[i].narrow(0, 0, (tasks[i].length + s - 1) / s).fill_(true);
     }
     torch::NoGradGuard ng;

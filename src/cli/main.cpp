@@ -58,6 +58,7 @@ int main(int argc, char** argv) {
   mc::add_sample_command(app);
   mc::add_eval_commands(app);
   mc::add_health_command(app);
+  mc::add_export_command(app);
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {

@@ -50,6 +50,13 @@ void AdapterTrainingConfig::visit(FieldVisitor& v) {
     "seed it draws the same batches, times and anchors as its real-feature twin");
 }
 
+void AdapterFeatureConfig::visit(FieldVisitor& v) {
+  v("delta_scale", delta_scale,
+    "multiplies eq. (6)'s path-difference channels Delta p (metres per frame) so the root's required speed "
+    "reaches the scale of the positions (1 = as written; 20 = metres per second at 20 fps)",
+    in_range(1e-3, 1e3));
+}
+
 void AnchorAdapterConfig::visit(FieldVisitor& v) {
   v("adapter", adapter, "condition path: anchorkv (eqs. (14)-(15)), cross_attention or controlnet (Table IV baselines)",
     one_of({"anchorkv", "cross_attention", "controlnet"}));
@@ -74,6 +81,7 @@ void AnchorAdapterConfig::visit(FieldVisitor& v) {
   v("anchorkv", anchorkv, "AnchorKV's memory attention (defaults: eq. (15) as written)");
   v("training", training, "where controlled training spends its signal, and the zeroed-feature audit twin "
     "(defaults: uniform t, real features)");
+  v("features", features, "scale of the adapter's input features (default: eqs. (5)-(6) as written)");
   v("lambda_anc", lambda_anc, "lambda_anc of eq. (16) (0 = CE only, Table IV 'without anchor loss')", at_least(0.0));
   v("delta", delta, "support radius delta of eqs. (7)-(10), frames", in_range(0, 50));
   v("cond_drop", cond_drop, "probability of the null text during adapter training (keeps CFG usable)",
@@ -104,7 +112,7 @@ int64_t adapter_feature_width(const std::vector<int>& body_joints) {
   return w;
 }
 
-torch::Tensor adapter_features(const AnchorSet& set, const std::vector<int>& body_joints) {
+torch::Tensor adapter_features(const AnchorSet& set, const std::vector<int>& body_joints, double delta_scale) {
   const int64_t T = set.frames;
   auto out = torch::zeros({T, adapter_feature_width(body_joints)});
   int64_t col = 0;
@@ -112,6 +120,7 @@ torch::Tensor adapter_features(const AnchorSet& set, const std::vector<int>& bod
     auto layout = anchor_feature_layout(kFamilies[i], body_joints);
     if (set.family == kFamilies[i] && set.size() > 0) {
       FeatureMatrix m = anchor_features(set, layout);  // eqs. (5)-(6)
+      if (delta_scale != 1.0) m.middleCols(2 * layout.d_f, layout.d_f) *= static_cast<float>(delta_scale);
       out.narrow(1, col, layout.width()).copy_(torch::from_blob(m.data(), {T, layout.width()}, torch::kFloat32));
     }
     col += layout.width();
@@ -539,7 +548,7 @@ class AnchorAdapterTrainer : public Trainable {
     auto feats = torch::zeros({B, Tp, adapter_feature_width(cfg_.body_joints)});
     if (!zero_features)
       for (int64_t b = 0; b < B; ++b)
-        feats[b].narrow(0, 0, sets[b].frames).copy_(adapter_features(sets[b], cfg_.body_joints));
+        feats[b].narrow(0, 0, sets[b].frames).copy_(adapter_features(sets[b], cfg_.body_joints, cfg_.features.delta_scale));
     AdapterInputs in{xin, tt, text, valid, feats.to(dev)};
     auto hooks = adapter_->hooks(in);
     auto logits = prior_->net()->transformer->forward(xin, tt, text, valid, &hooks).logits;  // [B, L, K]

@@ -117,6 +117,17 @@ TEST_CASE("motion file round trip preserves every field", "[data][io]") {
     CHECK_FALSE(b.stats.has_value());
     CHECK(b.vocab.empty());
   }
+  SECTION("joint statistics without feature statistics (a converted dataset) round-trip") {
+    m.stats->feature_mean.clear();
+    m.stats->feature_std.clear();
+    m.stats->feature_layout = "none";
+    write_motion_file(dir.file("joint_stats.h5"), m);
+    MotionSet b = read_motion_file(dir.file("joint_stats.h5"));
+    REQUIRE(b.stats.has_value());
+    CHECK(b.stats->joint_std == m.stats->joint_std);
+    CHECK(b.stats->feature_mean.empty());
+    CHECK(b.stats->feature_layout == "none");
+  }
   SECTION("an empty set round-trips") {
     MotionSet empty = random_motion_set({}, {"train"});
     write_motion_file(dir.file("empty.h5"), empty);
@@ -347,6 +358,11 @@ TEST_CASE("check rejects inconsistent in-memory sets", "[data][io]") {
   SECTION("stats with the wrong shape") {
     m.stats->joint_std = {1.0f, 1.0f};
     CHECK_THAT(user_error_of([&] { m.check("src"); }), Contains("stats/joint_std"));
+  }
+  SECTION("a vocabulary without the special tokens (converter 1.0's sorted word list)") {
+    m.vocab = {"person", "walks"};
+    CHECK_THAT(user_error_of([&] { m.check("src"); }),
+               Contains("src") && Contains("<pad>") && Contains("humanml3d_to_h5.py"));
   }
   SECTION("an empty caption list") {
     m.captions[2].clear();
