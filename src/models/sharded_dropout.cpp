@@ -3,7 +3,6 @@
 #include "models/sharded_dropout.h"
 
 #include <limits>
-#include <numeric>
 
 #include "core/error.h"
 
@@ -30,18 +29,11 @@ torch::Tensor sharded_dropout(const torch::Tensor& x, double p, bool training, i
                                        "of the {} rows this rank computes",
                                        dim, x.dim(), here, n));
   const int64_t per_row = here / n;
-  // torch draws the mask of empty_like(x): the same strides, filled in memory
-  // order. The whole batch's mask is laid out the same way (dimensions ordered by
-  // x's strides), drawn, then cut to this rank's rows.
-  std::vector<int64_t> order(x.dim());
-  std::iota(order.begin(), order.end(), 0);
-  std::stable_sort(order.begin(), order.end(), [&](int64_t a, int64_t b) { return x.stride(a) > x.stride(b); });
-  std::vector<int64_t> sizes, inverse(x.dim());
-  for (size_t i = 0; i < order.size(); ++i) {
-    sizes.push_back(order[i] == dim ? per_row * rows->total : x.size(order[i]));
-    inverse[order[i]] = static_cast<int64_t>(i);
-  }
-  auto noise = torch::empty(sizes, x.options()).bernoulli_(1 - p).permute(inverse);
+  // torch::dropout draws its mask into a contiguous tensor of x's sizes (row-major,
+  // whatever x's strides): the whole batch's mask is drawn the same way, then cut.
+  auto sizes = x.sizes().vec();
+  sizes[dim] = per_row * rows->total;
+  auto noise = torch::empty(sizes, x.options()).bernoulli_(1 - p);
   noise = noise.narrow(dim, per_row * rows->begin, here).div(1 - p);
   return x * noise;
 }

@@ -444,7 +444,11 @@ static void check_trainable_shards(const std::string& config, const std::string&
     INFO(slurp(p.log));
     REQUIRE(code == 0);
     for (const auto& e : fs::recursive_directory_iterator(t.path / "runs"))
-      if (e.path().filename() == name && fs::exists(e.path() / "metrics.csv")) return read_curve(e.path() / "metrics.csv");
+      if (e.path().filename() == name && fs::exists(e.path() / "metrics.csv")) {
+        CHECK((slurp(e.path() / "log.txt").find("2 data-parallel processes") != std::string::npos) ==
+              (how == "--nproc 2"));
+        return read_curve(e.path() / "metrics.csv");
+      }
     FAIL("no metrics.csv for run " << name);
     return Curve{};
   };
