@@ -283,7 +283,7 @@ CrossAttentionAdapterImpl::CrossAttentionAdapterImpl(const AnchorAdapterConfig& 
     q->push_back(nn::Linear(d, d));
     kv->push_back(nn::Linear(d, 2 * d));
     o_->push_back(nn::Linear(d, d));
-    mlp->push_back(nn::Sequential(nn::Linear(d, 4 * d), nn::SiLU(), nn::Dropout(c.dropout), nn::Linear(4 * d, d)));
+    mlp->push_back(nn::Sequential(nn::Linear(d, 4 * d), nn::SiLU(), ShardedDropout(c.dropout), nn::Linear(4 * d, d)));
     norm1->push_back(nn::LayerNorm(nn::LayerNormOptions({d})));
     norm2->push_back(nn::LayerNorm(nn::LayerNormOptions({d})));
     out->push_back(zero_linear(d, d));
@@ -403,7 +403,9 @@ class AnchorAdapterTrainer : public Trainable {
     return out;
   }
 
-  LossOutput loss(const std::vector<int64_t>& idx) override {
+  // Every draw (captions, anchor sets, t, drops, corruptions) is made for the whole
+  // batch and cut to the shard's rows (train/batch_shard.h).
+  LossOutput loss(const std::vector<int64_t>& idx, const BatchShard& shard) override {
     const MotionSet& set = ctx_.data->set();
     std::vector<std::string> caps;
     std::vector<AnchorSet> sets;
@@ -416,12 +418,13 @@ class AnchorAdapterTrainer : public Trainable {
     auto t = torch::rand({B});
     if (cfg_.training.t_power != 1.0) t = t.pow(cfg_.training.t_power);  // low-t emphasis
     auto drop = torch::rand({B}) < cfg_.cond_drop;
-    auto r = controlled_loss(idx, caps, sets, t, drop, nullptr, cfg_.training.zero_features);
+    auto r = controlled_loss(idx, caps, sets, t, drop, nullptr, cfg_.training.zero_features, shard);
     LossOutput out;
     out.loss = cfg_.lambda_anc > 0 ? r.ce + cfg_.lambda_anc * r.anc : r.ce;  // eq. (16)
     out.parts = {{"ce", r.ce.detach()}, {"anc", r.anc.detach()}, {"ctrl_err", r.ctrl}};
     return out;
   }
+  bool shards_batches() const override { return true; }
 
   // Validation CE and soft-decoded anchor error with fixed draws (the same clips, anchors,
   // captions and corruption at every call): at t = 0.5, and at t = 0.1 (mostly noise, where
@@ -510,25 +513,37 @@ class AnchorAdapterTrainer : public Trainable {
         torch::from_blob(const_cast<float*>(set.joints.data()), {static_cast<int64_t>(N), Tm, J, 3}, torch::kFloat32));
   }
 
-  Losses controlled_loss(const std::vector<int64_t>& idx, const std::vector<std::string>& caps,
-                         const std::vector<AnchorSet>& sets, const torch::Tensor& t, const torch::Tensor& drop,
-                         at::Generator* gen, bool zero_features = false) {
+  // Inputs are the whole batch's (corruptions drawn for all of it); a shard computes
+  // its rows and its share: sums over its targets and anchors divided by the whole
+  // batch's counts.
+  Losses controlled_loss(const std::vector<int64_t>& idx_whole, const std::vector<std::string>& caps_whole,
+                         const std::vector<AnchorSet>& sets_whole, const torch::Tensor& t, const torch::Tensor& drop,
+                         at::Generator* gen, bool zero_features = false, const BatchShard& shard = {}) {
     const auto dev = ctx_.device;
     const auto& pc = prior_->tmd_config();
-    const int64_t B = idx.size(), L = tokens_.size(1), Tp = L * stride_, K = prior_->codebook_size();
-    auto ix = torch::tensor(idx, torch::kInt64);
-    auto x1 = tokens_.index_select(0, ix).to(dev);
-    auto n = token_lengths_.index_select(0, ix);
+    const int64_t Bw = idx_whole.size(), L = tokens_.size(1), Tp = L * stride_, K = prior_->codebook_size();
+    auto ixw = torch::tensor(idx_whole, torch::kInt64);
+    auto x1 = tokens_.index_select(0, ixw).to(dev);
+    auto n = token_lengths_.index_select(0, ixw);
     auto valid = (torch::arange(L).unsqueeze(0) < n.unsqueeze(1)).to(dev);
     // eq. (19): the TMD corruption path, t ~ U[0, 1 - eps).
     auto tt = (t * (1 - pc.t_eps)).to(dev);
-    auto probs = tmd_path_probs(prior_->distance(), x1, tmd_beta(tt, pc.beta_c, pc.beta_a).view({B, 1}));
-    auto flat = probs.reshape({B * L, K}).to(torch::kCPU);
-    auto xin = (gen ? torch::multinomial(flat, 1, false, *gen) : torch::multinomial(flat, 1)).view({B, L}).to(dev);
-    auto text = prior_->encode_texts(caps);
+    auto probs = tmd_path_probs(prior_->distance(), x1, tmd_beta(tt, pc.beta_c, pc.beta_a).view({Bw, 1}));
+    auto flat = probs.reshape({Bw * L, K}).to(torch::kCPU);
+    auto xin = (gen ? torch::multinomial(flat, 1, false, *gen) : torch::multinomial(flat, 1)).view({Bw, L}).to(dev);
+    const double whole_tokens = valid.sum().item<double>();
+    const std::vector<int64_t> idx = shard.local(idx_whole);
+    const std::vector<AnchorSet> sets = shard.local(sets_whole);
+    const int64_t B = idx.size();
+    auto ix = torch::tensor(idx, torch::kInt64);
+    x1 = shard.local(x1);
+    valid = shard.local(valid);
+    xin = shard.local(xin);
+    tt = shard.local(tt);
+    auto text = prior_->encode_texts(shard.local(caps_whole));
     {
       torch::NoGradGuard ng;
-      text = prior_->net()->drop_condition(text, drop.to(dev));
+      text = prior_->net()->drop_condition(text, shard.local(drop).to(dev));
     }
     auto feats = torch::zeros({B, Tp, adapter_feature_width(cfg_.body_joints)});
     if (!zero_features)
@@ -539,7 +554,12 @@ class AnchorAdapterTrainer : public Trainable {
     auto logits = prior_->net()->transformer->forward(xin, tt, text, valid, &hooks).logits;  // [B, L, K]
     auto sel = valid.reshape({-1});
     Losses r;
-    r.ce = F::cross_entropy(logits.reshape({B * L, K}).index({sel}), x1.reshape({-1}).index({sel}));  // eq. (20)
+    if (shard.whole())
+      r.ce = F::cross_entropy(logits.reshape({B * L, K}).index({sel}), x1.reshape({-1}).index({sel}));  // eq. (20)
+    else
+      r.ce = F::cross_entropy(logits.reshape({B * L, K}).index({sel}), x1.reshape({-1}).index({sel}),
+                              F::CrossEntropyFuncOptions().reduction(torch::kSum)) /
+             std::max(1.0, whole_tokens);
     // eq. (10) through the differentiable soft decode: expected code embedding -> frozen decoder.
     VqTokenizer handle = prior_->tokenizer().model;
     auto& tok = *handle;
@@ -548,8 +568,17 @@ class AnchorAdapterTrainer : public Trainable {
     auto gt = world_.index_select(0, ix).to(dev);
     auto support = make_support_batch(sets, cfg_.delta, gt);
     // Mean over support entries (not the sum) so lambda_anc does not scale with K.
-    r.anc = anchor_loss(world, support).sum() / support.valid.sum().clamp_min(1.0);
-    r.ctrl = mean_control_error(world, make_anchor_batch(sets, dev)).detach();
+    if (shard.whole()) {
+      r.anc = anchor_loss(world, support).sum() / support.valid.sum().clamp_min(1.0);
+      r.ctrl = mean_control_error(world, make_anchor_batch(sets, dev)).detach();
+    } else {
+      auto anchors = make_anchor_batch(sets, dev);
+      const double entries = shard.sum(support.valid.sum().item<double>());
+      const double count = shard.sum(anchors.valid.sum().item<double>());
+      r.anc = anchor_loss(world, support).sum() / std::max(1.0, entries);
+      r.ctrl = count > 0 ? (anchor_errors(world, anchors).sum() / count).detach() : torch::zeros({}, world.options());
+      return r;  // non-finite values are the trainer's to catch: every rank sees the summed loss
+    }
     if (!torch::isfinite(r.ce).item<bool>() || !torch::isfinite(r.anc).item<bool>())
       fail("anchor_adapter: non-finite loss (ce {}, anchor {}); lower optim.lr", r.ce.item<double>(),
            r.anc.item<double>());

@@ -152,9 +152,10 @@ class FlowPriorTrainer : public Trainable {
   }
 
   // Flow-matching loss, eq. (3), masked to valid frames; t, x0, crops, captions
-  // and condition dropout all come from torch's generator (exact resume).
-  LossOutput loss(const std::vector<int64_t>& idx) override {
-    MotionBatch b = ctx_.data->batch(idx, ctx_.window, 1, ctx_.device, ctx_.trim_padding);
+  // and condition dropout all come from torch's generator (exact resume), drawn
+  // for the whole batch and cut to the shard's rows (train/batch_shard.h).
+  LossOutput loss(const std::vector<int64_t>& idx, const BatchShard& shard) override {
+    MotionBatch b = ctx_.data->batch(idx, ctx_.window, 1, ctx_.device, ctx_.trim_padding, shard);
     const MotionSet& set = ctx_.data->set();
     std::vector<std::string> caps;
     for (int64_t i : idx) {
@@ -162,15 +163,18 @@ class FlowPriorTrainer : public Trainable {
       caps.push_back(c[torch::randint(0, static_cast<int64_t>(c.size()), {1}).item<int64_t>()]);
     }
     const int64_t B = idx.size();
-    auto x0 = torch::randn(b.joints.sizes()).to(ctx_.device);
-    auto t = torch::rand({B}).to(ctx_.device);
-    auto drop = (torch::rand({B}) < cfg_.cond_drop).to(ctx_.device);
-    auto fl = flow_loss(b, caps, x0, t, drop, cfg_.loss)[0];
+    auto sizes = b.joints.sizes().vec();
+    sizes[0] = B;
+    auto x0 = shard.local(torch::randn(sizes)).to(ctx_.device);
+    auto t = shard.local(torch::rand({B})).to(ctx_.device);
+    auto drop = shard.local(torch::rand({B}) < cfg_.cond_drop).to(ctx_.device);
+    auto fl = flow_loss(b, shard.local(caps), x0, t, drop, cfg_.loss)[0];
     LossOutput out;
     out.loss = fl;
     out.parts = {{"fm", fl.detach()}};
     return out;
   }
+  bool shards_batches() const override { return true; }
 
   // Validation flow loss at fixed t (first caption, whole clips, a constant-seeded
   // local generator for x0): comparable across runs and leaves torch's RNG alone.
@@ -263,7 +267,9 @@ class FlowPriorTrainer : public Trainable {
     cond = torch::where(drop.unsqueeze(1), net_->null_condition(cond.size(0)), cond);
     auto out = net_->transformer->forward(xt, t, cond, b.mask).velocity;
     auto m = b.mask.view({b.mask.size(0), b.mask.size(1), 1, 1}).to(out.dtype());
-    auto denom = m.sum() * x1.size(2) * 3 + 1e-8;
+    // Means over the whole batch's valid frames (b.whole_mask): a shard's share.
+    auto wm = b.whole_mask.to(out.dtype());
+    auto denom = wm.sum() * x1.size(2) * 3 + 1e-8;
     auto mse = [&](const torch::Tensor& err) { return (err.pow(2) * m).sum() / denom; };
     // A clean network's velocity error is its clean error over max(1 - t, eps):
     // exactly the velocity error where 1 - t >= eps, and no target that pushes
@@ -282,7 +288,8 @@ class FlowPriorTrainer : public Trainable {
       const int64_t T = err.size(1);
       auto d = err.narrow(1, 1, T - 1) - err.narrow(1, 0, T - 1);
       auto pm = m.narrow(1, 1, T - 1) * m.narrow(1, 0, T - 1);
-      loss = loss + cfg_.smooth_weight * (d.pow(2) * pm).sum() / (pm.sum() * x1.size(2) * 3 + 1e-8);
+      auto wpm = wm.narrow(1, 1, T - 1) * wm.narrow(1, 0, T - 1);
+      loss = loss + cfg_.smooth_weight * (d.pow(2) * pm).sum() / (wpm.sum() * x1.size(2) * 3 + 1e-8);
     }
     return {loss};
   }

@@ -35,8 +35,8 @@ torch::Tensor MotionDataset::denormalize(const torch::Tensor& normed) const {
 }
 
 MotionBatch MotionDataset::batch(const std::vector<int64_t>& idx, int window, int round_to,
-                                 const torch::Device& device, bool trim) const {
-  const int64_t B = idx.size(), J = num_joints();
+                                 const torch::Device& device, bool trim, const BatchShard& shard) const {
+  const int64_t J = num_joints();
   int64_t T = window > 0 ? window : set_.t_max;
   if (window == 0 && trim) {
     int64_t longest = 1;
@@ -44,18 +44,34 @@ MotionBatch MotionDataset::batch(const std::vector<int64_t>& idx, int window, in
     T = std::min<int64_t>(T, longest);
   }
   if (round_to > 1) T = (T + round_to - 1) / round_to * round_to;
+  // Every clip's crop is drawn, in order, whichever rows are built: a shard's
+  // draws are the whole batch's.
+  const int64_t Bw = idx.size();
+  std::vector<int64_t> starts(Bw, 0), takes(Bw);
+  for (int64_t b = 0; b < Bw; ++b) {
+    int64_t len = set_.lengths[idx[b]];
+    takes[b] = std::min(len, T);
+    if (window > 0 && len > T) starts[b] = torch::randint(0, len - T + 1, {1}).item<int64_t>();
+  }
+  const BatchRows rows = shard.rows(Bw);
+  const int64_t B = rows.size();
   auto x = torch::zeros({B, T, J, 3});
   auto mask = torch::zeros({B, T}, torch::kBool);
   auto lengths = torch::zeros({B}, torch::kInt64);
   for (int64_t b = 0; b < B; ++b) {
-    int64_t len = set_.lengths[idx[b]];
-    int64_t start = 0, take = std::min(len, T);
-    if (window > 0 && len > T) start = torch::randint(0, len - T + 1, {1}).item<int64_t>();
-    x[b].narrow(0, 0, take).copy_(normalize(all_[idx[b]].narrow(0, start, take)));
-    mask[b].narrow(0, 0, take).fill_(true);
-    lengths[b] = take;
+    const int64_t w = rows.begin + b;
+    x[b].narrow(0, 0, takes[w]).copy_(normalize(all_[idx[w]].narrow(0, starts[w], takes[w])));
+    mask[b].narrow(0, 0, takes[w]).fill_(true);
+    lengths[b] = takes[w];
   }
-  MotionBatch out{x.to(device), mask.to(device), lengths.to(device), idx};
+  MotionBatch out{x.to(device), mask.to(device), lengths.to(device), shard.local(idx)};
+  if (shard.whole()) {
+    out.whole_mask = out.mask;
+  } else {
+    auto whole = torch::zeros({Bw, T}, torch::kBool);
+    for (int64_t b = 0; b < Bw; ++b) whole[b].narrow(0, 0, takes[b]).fill_(true);
+    out.whole_mask = whole.to(device);
+  }
   return out;
 }
 

@@ -8,6 +8,7 @@
 
 #include "core/config.h"
 #include "data/motion_set.h"
+#include "models/batch_shard.h"
 
 namespace mc {
 
@@ -38,6 +39,9 @@ struct MotionBatch {
   torch::Tensor mask;     // [B, T] bool, true on valid frames
   torch::Tensor lengths;  // [B] int64
   std::vector<int64_t> indices;
+  // The whole batch's mask [B_whole, T] when the batch is a data-parallel shard's
+  // rows (for means over the whole batch's valid frames); else `mask` itself.
+  torch::Tensor whole_mask;
 };
 
 class MotionDataset {
@@ -54,9 +58,11 @@ class MotionDataset {
 
   // Normalised clips; window > 0 crops a random window (padded when shorter),
   // `round_to` pads T up to a multiple (for strided convolutions). With window 0,
-  // `trim` pads to the longest clip of the batch instead of t_max.
+  // `trim` pads to the longest clip of the batch instead of t_max. With a shard,
+  // its rows of that batch exactly: crops drawn for every clip of `idx` and the
+  // whole batch's padded length.
   MotionBatch batch(const std::vector<int64_t>& idx, int window, int round_to, const torch::Device& device,
-                    bool trim = false) const;
+                    bool trim = false, const BatchShard& shard = {}) const;
   int64_t length(int64_t i) const { return set_.lengths[i]; }
   torch::Tensor normalize(const torch::Tensor& world) const;    // [..., 3]
   torch::Tensor denormalize(const torch::Tensor& normed) const;  // [..., 3]

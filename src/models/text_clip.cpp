@@ -9,11 +9,13 @@
 #include <algorithm>
 #include <cmath>
 #include <fstream>
+#include <optional>
 #include <ostream>
 
 #include "core/atomic_file.h"
 #include "core/error.h"
 #include "models/flow_transformer.h"
+#include "models/sharded_dropout.h"
 #include "models/token_prior.h"
 #include "core/trained_runs.h"
 #include "models/trainable.h"
@@ -86,7 +88,7 @@ torch::Tensor ClipMotionEncoderImpl::forward(const torch::Tensor& joints, const 
   feats = feats.reshape({B, N, stride * J * 9});
   auto pos = torch::arange(N, torch::TensorOptions().dtype(torch::kFloat32).device(joints.device()));
   auto h = input(feats) + timestep_sinusoid(pos, width).unsqueeze(0);
-  h = encoder->forward(h.transpose(0, 1), torch::Tensor(), tok_valid.logical_not()).transpose(0, 1);
+  h = transformer_encoder_forward(*encoder, h.transpose(0, 1), tok_valid.logical_not()).transpose(0, 1);
   auto w = tok_valid.unsqueeze(-1).to(h.dtype());
   auto pooled = (h * w).sum(1) / w.sum(1).clamp_min(1.0);
   return out(norm(pooled));
@@ -224,25 +226,34 @@ class TextClipTrainer : public Trainable {
   nn::Module& module() override { return *net_; }
 
   // One random caption per clip, each clip once (a batch that wraps an epoch could
-  // hold one twice, which would be its own negative).
-  LossOutput loss(const std::vector<int64_t>& idx_in) override {
+  // hold one twice, which would be its own negative). A data-parallel shard embeds
+  // its rows of the deduplicated batch, gathers every rank's embeddings and computes
+  // the whole batch's InfoNCE (train/batch_shard.h: replicated, the temperature
+  // shared), so its gradient is the one-process gradient through its own rows.
+  LossOutput loss(const std::vector<int64_t>& idx_in, const BatchShard& shard) override {
     std::vector<int64_t> idx;
     for (int64_t i : idx_in)
       if (std::find(idx.begin(), idx.end(), i) == idx.end()) idx.push_back(i);
-    MotionBatch b = ctx_.data->batch(idx, ctx_.window, 1, ctx_.device, ctx_.trim_padding);
+    const int64_t n = idx.size();
+    std::optional<BatchRowsScope> rows;  // dropout over the deduplicated batch's rows
+    if (!shard.whole()) rows.emplace(shard.rows(n));
+    MotionBatch b = ctx_.data->batch(idx, ctx_.window, 1, ctx_.device, ctx_.trim_padding, shard);
     const MotionSet& set = ctx_.data->set();
     std::vector<std::string> caps;
     for (int64_t i : idx) {
       const auto& c = set.captions[i];
       caps.push_back(c[torch::randint(0, static_cast<int64_t>(c.size()), {1}).item<int64_t>()]);
     }
-    auto [text, motion] = embed(b, caps);
-    auto l = clip_infonce(text, motion, net_->scale(), same_caption_matrix(caps));
+    auto [text, motion] = embed(b, shard.local(caps));
+    auto scale = shard.shared(net_->scale());
+    auto l = shard.replicated(
+        clip_infonce(shard.gather(text, n), shard.gather(motion, n), scale, same_caption_matrix(caps)));
     LossOutput out;
     out.loss = l;
-    out.parts = {{"nce", l.detach()}, {"logit_scale", net_->scale().detach()}};
+    out.parts = {{"nce", l.detach()}, {"logit_scale", shard.replicated(net_->scale().detach())}};
     return out;
   }
+  bool shards_batches() const override { return true; }
 
   // Whole val clips with their first caption, in pools of eval_pool: the InfoNCE
   // loss per pool and text->motion retrieval top-1/top-3 (R-precision's convention;

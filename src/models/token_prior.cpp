@@ -14,6 +14,7 @@
 #include "data/skeleton.h"
 #include "data/text_vocab.h"
 #include "models/flow_prior.h"
+#include "models/sharded_dropout.h"
 #include "models/trained_run.h"
 #include "models/vq_tokenizer.h"
 #include "core/trained_runs.h"
@@ -189,7 +190,7 @@ TextContext TokenTextEncoderImpl::forward(const torch::Tensor& ids, const torch:
   auto pos = torch::arange(L, torch::TensorOptions().dtype(torch::kInt64).device(dev));
   auto h = embedding(ids) + position(pos).unsqueeze(0);
   auto valid = pos.unsqueeze(0) < lengths.to(dev).unsqueeze(1);  // [B, W]
-  h = encoder->forward(h.transpose(0, 1), torch::Tensor(), valid.logical_not()).transpose(0, 1);
+  h = transformer_encoder_forward(*encoder, h.transpose(0, 1), valid.logical_not()).transpose(0, 1);
   auto m = valid.unsqueeze(-1).to(h.dtype());
   TextContext c;
   c.pooled = out(norm((h * m).sum(1) / m.sum(1).clamp_min(1.0)));
@@ -309,7 +310,10 @@ class TokenPriorTrainer : public Trainable {
   }
   nn::Module& module() override { return *net_; }
 
-  LossOutput loss(const std::vector<int64_t>& idx) override {
+  // Captions, t, drops, masking noise and corruptions are drawn for the whole batch
+  // (train/batch_shard.h); a shard's CE and accuracy divide by the whole batch's
+  // target-token count.
+  LossOutput loss(const std::vector<int64_t>& idx, const BatchShard& shard) override {
     const MotionSet& set = ctx_.data->set();
     std::vector<std::string> caps;
     for (int64_t i : idx) {
@@ -321,12 +325,13 @@ class TokenPriorTrainer : public Trainable {
     auto drop = torch::rand({B}) < cfg().cond_drop;
     torch::Tensor noise;  // masked prior: the random ranks choosing masked positions
     if (!tmd_) noise = torch::rand({B, tokens_.size(1)});
-    auto r = token_loss(idx, caps, t, drop, noise, nullptr);
+    auto r = token_loss(idx, caps, t, drop, noise, nullptr, shard);
     LossOutput out;
     out.loss = r.ce;
     out.parts = {{"ce", r.ce.detach()}, {"acc", r.acc}};
     return out;
   }
+  bool shards_batches() const override { return true; }
 
   // Validation CE at fixed times (first caption, corruption from a constant-seeded
   // local generator): comparable across runs and leaves torch's RNG alone.
@@ -412,10 +417,15 @@ class TokenPriorTrainer : public Trainable {
 
   // eq. (20) averaged over the tokens it covers: all valid tokens (TMD) or the masked
   // ones (masked baseline). gen = nullptr draws TMD corruptions from torch's generator.
+  // Inputs are the whole batch's; a shard computes its rows (corruptions drawn for
+  // all of them) and its share: CE and accuracy summed over its targets and divided
+  // by the whole batch's target count.
   TokenLoss token_loss(const std::vector<int64_t>& idx, const std::vector<std::string>& caps, const torch::Tensor& t,
-                       const torch::Tensor& drop, const torch::Tensor& noise, at::Generator* gen) {
+                       const torch::Tensor& drop, const torch::Tensor& noise, at::Generator* gen,
+                       const BatchShard& shard = {}) {
     const auto dev = ctx_.device;
-    const int64_t B = idx.size(), L = tokens_.size(1);
+    const int64_t Bw = idx.size(), L = tokens_.size(1);
+    const int64_t B = shard.rows(Bw).size();
     auto ix = torch::tensor(idx, torch::kInt64);
     auto x1 = tokens_.index_select(0, ix).to(dev);
     auto n = token_lengths_.index_select(0, ix);
@@ -424,32 +434,44 @@ class TokenPriorTrainer : public Trainable {
     if (tmd_) {
       // eq. (19): z_t,n ~ q_t(. | z_1,n) per token, t ~ U[0, 1 - eps).
       tt = (t * (1 - tmd_->t_eps)).to(dev);
-      auto probs = tmd_path_probs(net_->distance, x1, tmd_beta(tt, tmd_->beta_c, tmd_->beta_a).view({B, 1}));
-      auto flat = probs.reshape({B * L, K_}).to(torch::kCPU);
+      auto probs = tmd_path_probs(net_->distance, x1, tmd_beta(tt, tmd_->beta_c, tmd_->beta_a).view({Bw, 1}));
+      auto flat = probs.reshape({Bw * L, K_}).to(torch::kCPU);
       auto draw = gen ? torch::multinomial(flat, 1, false, *gen) : torch::multinomial(flat, 1);
-      xin = draw.view({B, L}).to(dev);
+      xin = draw.view({Bw, L}).to(dev);
       target_mask = valid;
     } else {
       // MoMask: mask round(n cos(pi t / 2)) >= 1 random valid tokens.
-      auto counts = torch::zeros({B}, torch::kInt64);
+      auto counts = torch::zeros({Bw}, torch::kInt64);
       auto ta = t.accessor<float, 1>();
-      for (int64_t b = 0; b < B; ++b) counts[b] = masked_train_count(n[b].item<int64_t>(), ta[b]);
+      for (int64_t b = 0; b < Bw; ++b) counts[b] = masked_train_count(n[b].item<int64_t>(), ta[b]);
       auto scores = noise.masked_fill(valid.to(torch::kCPU).logical_not(), 2.0);
       auto ranks = scores.argsort(int64_t{1}).argsort(int64_t{1});  // continuous noise: ties have probability 0
       target_mask = (ranks < counts.unsqueeze(1)).to(dev);
       xin = torch::where(target_mask, torch::full_like(x1, net_->transformer->mask_id()), x1);
     }
-    auto enc = encode_captions(vocab_, caps, cfg().max_words);
+    const double whole_count = target_mask.sum().item<double>();
+    x1 = shard.local(x1);
+    valid = shard.local(valid);
+    xin = shard.local(xin);
+    target_mask = shard.local(target_mask);
+    if (tt.defined()) tt = shard.local(tt);
+    auto enc = encode_captions(vocab_, shard.local(caps), cfg().max_words);
     auto text = net_->encode_text(enc.ids.to(dev), enc.lengths.to(dev));
-    text = net_->drop_condition(text, drop.to(dev));
+    text = net_->drop_condition(text, shard.local(drop).to(dev));
     auto logits = net_->transformer->forward(xin, tt, text, valid).logits;  // [B, L, K]
     auto sel = target_mask.reshape({-1});
     auto lg = logits.reshape({B * L, K_}).index({sel});
     auto tg = x1.reshape({-1}).index({sel});
     TokenLoss r;
-    r.ce = F::cross_entropy(lg, tg);
-    r.acc = (lg.argmax(-1) == tg).to(torch::kFloat32).mean().detach();
-    r.count = static_cast<double>(tg.size(0));
+    if (shard.whole()) {
+      r.ce = F::cross_entropy(lg, tg);
+      r.acc = (lg.argmax(-1) == tg).to(torch::kFloat32).mean().detach();
+    } else {
+      const double denom = std::max(1.0, whole_count);
+      r.ce = F::cross_entropy(lg, tg, F::CrossEntropyFuncOptions().reduction(torch::kSum)) / denom;
+      r.acc = (lg.argmax(-1) == tg).to(torch::kFloat32).sum().detach() / denom;
+    }
+    r.count = whole_count;
     return r;
   }
 

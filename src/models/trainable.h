@@ -11,6 +11,7 @@
 
 #include "core/config.h"
 #include "core/run_dir.h"
+#include "models/batch_shard.h"
 #include "models/motion_dataset.h"
 
 namespace mc {
@@ -37,7 +38,16 @@ class Trainable {
   virtual torch::nn::Module& module() = 0;
   // Parameters the optimiser updates (adapters return only theirs; the rest is frozen).
   virtual std::vector<torch::Tensor> trainable_parameters() { return module().parameters(); }
-  virtual LossOutput loss(const std::vector<int64_t>& batch_indices) = 0;
+  // The loss of the batch `batch_indices` (clip ids; the whole, global batch).
+  // Data-parallel training (train/batch_shard.h) passes the rank's shard: the
+  // trainable then computes only the shard's rows and returns its share of the
+  // loss and parts, which the trainer sums over ranks. A trainable that says so
+  // in shards_batches(); one that does not is given the whole batch on every rank
+  // (correct, but no faster than one process). One process: the whole batch.
+  virtual LossOutput loss(const std::vector<int64_t>& batch_indices, const BatchShard& shard) = 0;
+  LossOutput loss(const std::vector<int64_t>& batch_indices) { return loss(batch_indices, BatchShard{}); }
+  // True when loss() computes only its shard's rows and returns shares.
+  virtual bool shards_batches() const { return false; }
   // Metrics of the final (EMA) weights, e.g. validation reconstruction error.
   virtual std::map<std::string, double> evaluate() { return {}; }
   // The splits evaluate() reads: the loop checks them (and "train") before the
