@@ -98,7 +98,7 @@ TEST_CASE("dependencies: the run table gives a named run, the noted one, and ref
   CHECK(trained_run("t", "", "configs/never_resolved.yaml", ov) == "runs/second");
 }
 
-TEST_CASE("dependencies: a generator never trains its prior; the job's resolution installs it, then it loads",
+TEST_CASE("dependencies: a generator never trains its prior, the job's resolution installs it, then it loads",
           "[train][pretrained]") {
   TempDir t("deps");
   // flow_tiny is shipped in pretrained/: resolving it under a fresh runs root installs
