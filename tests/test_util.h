@@ -8,6 +8,8 @@
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
+#include <map>
+#include <stdexcept>
 #include <sstream>
 #include <string>
 #include <vector>
@@ -50,6 +52,19 @@ inline CommandResult run_motionctl(const std::string& args) {
   int status = ::pclose(p);
   r.exit_code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
   return r;
+}
+
+// A smoke fixture of `clips` clips built once per test process (per clip count) and
+// shared by every test that only reads it.
+inline const std::string& shared_smoke_fixture(int clips) {
+  static TempDir dir("shared_fx");
+  static std::map<int, std::string> built;
+  auto it = built.find(clips);
+  if (it != built.end()) return it->second;
+  const std::string p = (dir.path / fmt::format("fx{}.h5", clips)).string();
+  auto r = run_motionctl(fmt::format("fixture configs/data/smoke.yaml output={} fixture.num_clips={}", p, clips));
+  if (r.exit_code != 0) throw std::runtime_error("building the shared smoke fixture failed:\n" + r.output);
+  return built.emplace(clips, p).first->second;
 }
 
 inline std::string slurp(const fs::path& p) {

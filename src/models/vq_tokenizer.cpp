@@ -44,20 +44,24 @@ torch::Tensor EmaQuantizerImpl::lookup(const torch::Tensor& ids) const {
   return F::embedding(ids, codebook);
 }
 
+torch::Tensor EmaQuantizerImpl::ema_means_(const torch::Tensor& counts, const torch::Tensor& sums) {
+  const double d = opt.decay;
+  cluster_size.mul_(d).add_(counts, 1.0 - d);
+  embed_sum.mul_(d).add_(sums, 1.0 - d);
+  // Laplace smoothing keeps the division finite for codes with (almost) no mass
+  // while preserving the total count.
+  auto n = cluster_size.sum();
+  auto smoothed = (cluster_size + opt.epsilon) / (n + opt.codebook_size * opt.epsilon) * n;
+  return embed_sum / smoothed.unsqueeze(1);
+}
+
 torch::Tensor EmaQuantizerImpl::ema_update(const torch::Tensor& z, const torch::Tensor& ids) {
   torch::NoGradGuard ng;
   const int64_t K = opt.codebook_size, N = z.size(0);
   if (N == 0) return torch::zeros({}, torch::kLong);
-  const double d = opt.decay;
   auto zf = z.to(codebook.dtype());
   auto onehot = F::one_hot(ids, K).to(zf.dtype());  // [N, K]
-  cluster_size.mul_(d).add_(onehot.sum(0), 1.0 - d);
-  embed_sum.mul_(d).add_(torch::matmul(onehot.t(), zf), 1.0 - d);
-  // Laplace smoothing keeps the division finite for codes with (almost) no mass
-  // while preserving the total count.
-  auto n = cluster_size.sum();
-  auto smoothed = (cluster_size + opt.epsilon) / (n + K * opt.epsilon) * n;
-  auto updated = embed_sum / smoothed.unsqueeze(1);
+  auto updated = ema_means_(onehot.sum(0), torch::matmul(onehot.t(), zf));
   if (opt.reset_threshold <= 0) {
     codebook.copy_(updated);
     return torch::zeros({}, torch::kLong);
@@ -82,13 +86,8 @@ torch::Tensor EmaQuantizerImpl::ema_update_shard(const torch::Tensor& z, const t
   torch::NoGradGuard ng;
   const int64_t K = opt.codebook_size, D = opt.code_dim, N = z.size(0);
   if (total == 0) return torch::zeros({}, torch::kLong);
-  const double d = opt.decay;
   auto zf = z.to(codebook.dtype());
-  cluster_size.mul_(d).add_(counts, 1.0 - d);
-  embed_sum.mul_(d).add_(sums, 1.0 - d);
-  auto n = cluster_size.sum();
-  auto smoothed = (cluster_size + opt.epsilon) / (n + K * opt.epsilon) * n;
-  auto updated = embed_sum / smoothed.unsqueeze(1);
+  auto updated = ema_means_(counts, sums);
   if (opt.reset_threshold <= 0) {
     codebook.copy_(updated);
     return torch::zeros({}, torch::kLong);

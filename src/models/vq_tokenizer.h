@@ -67,6 +67,9 @@ struct EmaQuantizerImpl : torch::nn::Module {
   // are given.
   torch::Tensor ema_update_shard(const torch::Tensor& z, const torch::Tensor& counts, const torch::Tensor& sums,
                                  int64_t total, int64_t offset, const QuantizerSync& sync);
+  // The EMA statistics step both updates share: decays cluster_size and embed_sum
+  // towards this batch's counts [K] and sums [K, D]; returns the smoothed code means.
+  torch::Tensor ema_means_(const torch::Tensor& counts, const torch::Tensor& sums);
 
   EmaQuantizerOptions opt;
   torch::Tensor codebook;      // [K, D] buffer

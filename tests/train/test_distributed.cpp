@@ -171,16 +171,7 @@ void check_same_curve(const Curve& want, const Curve& got, double rel = 1e-5) {
   WARN("largest relative difference over the curve: " << worst);
 }
 
-const std::string& small_fixture() {
-  static TempDir dir("ddp_data");
-  static const std::string path = [] {
-    std::string p = (dir.path / "fx.h5").string();
-    auto r = run_motionctl(fmt::format("fixture configs/data/smoke.yaml output={} fixture.num_clips=40", p));
-    REQUIRE(r.exit_code == 0);
-    return p;
-  }();
-  return path;
-}
+const std::string& small_fixture() { return shared_smoke_fixture(40); }
 
 // A tiny flow prior with every kind of per-sample randomness: whole clips trimmed
 // to the batch's longest, captions, x0, t, condition drop, dropout in the flow

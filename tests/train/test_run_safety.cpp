@@ -78,16 +78,7 @@ MC_REGISTER_MODEL("test_toy_fault", ToyFaultConfig,
                   "test model with injected divergence");
 
 // A small fixture shared by the tests of this file (built once).
-const std::string& toy_data() {
-  static TempDir dir("safety_data");
-  static const std::string path = [] {
-    std::string p = (dir.path / "fx.h5").string();
-    auto r = run_motionctl(fmt::format("fixture configs/data/smoke.yaml output={} fixture.num_clips=40", p));
-    REQUIRE(r.exit_code == 0);
-    return p;
-  }();
-  return path;
-}
+const std::string& toy_data() { return shared_smoke_fixture(40); }
 
 TrainJobConfig toy_job(const fs::path& root, const std::string& model_extra, int steps = 20) {
   const std::string yaml = fmt::format(
