@@ -41,9 +41,8 @@ struct CommandResult {
   std::string output;  // stdout + stderr
 };
 
-// Runs `motionctl <args>` from the source tree; captures output and exit code.
-inline CommandResult run_motionctl(const std::string& args) {
-  std::string cmd = fmt::format("cd '{}' && CI=1 '{}' {} 2>&1", MOTIONCTL_SOURCE_DIR, MOTIONCTL_BINARY, args);
+// Runs a shell command line; captures its stdout and exit code (add 2>&1 for stderr).
+inline CommandResult run_shell(const std::string& cmd) {
   CommandResult r;
   FILE* p = ::popen(cmd.c_str(), "r");
   char buf[4096];
@@ -52,6 +51,11 @@ inline CommandResult run_motionctl(const std::string& args) {
   int status = ::pclose(p);
   r.exit_code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
   return r;
+}
+
+// Runs `motionctl <args>` from the source tree; captures output and exit code.
+inline CommandResult run_motionctl(const std::string& args) {
+  return run_shell(fmt::format("cd '{}' && CI=1 '{}' {} 2>&1", MOTIONCTL_SOURCE_DIR, MOTIONCTL_BINARY, args));
 }
 
 // A smoke fixture of `clips` clips built once per test process (per clip count) and

@@ -25,11 +25,14 @@ inline const std::vector<std::string> kPriorWordsWithNumbers = {
 // fps, `t_max`) and checkpoints/final.pt of a depth-2, width-64 prior with N(0,
 // 0.1^2) weights drawn after torch::manual_seed(5). Another `model_type` writes a
 // config.yaml of that type only (a foreign run for the loaders' errors).
+// `model_extra` adds lines to the model section (e.g. "  prediction: clean\n").
 inline void write_random_prior_run(const fs::path& dir, int t_max = 40, const std::string& model_type = "flow_prior",
-                                   const std::vector<std::string>& words = kPriorWords) {
+                                   const std::vector<std::string>& words = kPriorWords,
+                                   const std::string& model_extra = "") {
   TrainJobConfig job;
   parse_config(config_from_string("model:\n  type: flow_prior\n  depth: 2\n  width: 64\n  heads: 2\n"
-                                  "  text_width: 32\n  text_heads: 4\n  text_ff: 64\n  text_layers: 1\n"),
+                                  "  text_width: 32\n  text_heads: 4\n  text_ff: 64\n  text_layers: 1\n" +
+                                  model_extra),
                job);
   std::string yaml = dump_config(job);
   if (model_type != "flow_prior") yaml = "model:\n  type: " + model_type + "\n";

@@ -1,0 +1,89 @@
+// The flow prior's weights file (models/flow_weights.h): every parameter and buffer
+// of the loaded bundle under its module path, bit for bit, with the attributes a
+// loader needs; sealed; a non-finite weight is refused with no file written.
+#include <H5Cpp.h>
+
+#include <catch2/catch.hpp>
+
+#include "core/h5_seal.h"
+#include "models/flow_prior_test_util.h"
+#include "models/flow_weights.h"
+#include "test_util.h"
+
+using namespace mc;
+using namespace mc::test;
+
+namespace {
+
+std::string string_attr(const H5::H5Object& o, const std::string& name) {
+  H5::Attribute a = o.openAttribute(name);
+  std::string s;
+  a.read(a.getStrType(), s);
+  return s;
+}
+
+}  // namespace
+
+TEST_CASE("flow weights: every tensor of the bundle under its module path, bit for bit", "[flow_weights]") {
+  TempDir dir("flow_weights");
+  const fs::path run = dir.path / "prior";
+  write_random_prior_run(run, 40, "flow_prior", kPriorWords, "  temporal_kernel: 3\n");
+  FlowPrior prior = FlowPrior::load(run.string());
+  const std::string out = (dir.path / "w.h5").string();
+  FlowWeightsSource src{run.string(), "model: {}\n", "abc123"};
+  FlowWeightsGroup extra;
+  extra.name = "probe";
+  extra.arrays = {{"mask", torch::tensor({true, false})}, {"ids", torch::tensor({int64_t{3}, int64_t{4}})}};
+  write_flow_weights(prior, src, out, {extra});
+  CHECK(check_h5_seal(out, "weights") == H5Seal::valid);
+
+  auto tensors = flow_weight_tensors(prior);
+  // Parameters, then the normaliser buffers; the temporal kernel's convolutions in place of embed/head.
+  std::set<std::string> names;
+  for (auto& [n, t] : tensors) names.insert(n);
+  CHECK(names.count("transformer.embed_conv.weight") == 1);
+  CHECK(names.count("transformer.head.weight") == 0);
+  CHECK(names.count("text.encoder.layers.0.self_attn.in_proj_weight") == 1);
+  CHECK(names.count("joint_mean") == 1);
+  CHECK(names.count("joint_std") == 1);
+
+  H5::H5File f(out, H5F_ACC_RDONLY);
+  H5::Group w = f.openGroup("weights");
+  CHECK(w.getNumObjs() == tensors.size());
+  for (auto& [name, t] : tensors) {
+    INFO(name);
+    REQUIRE(w.nameExists(name));
+    H5::DataSet ds = w.openDataSet(name);
+    CHECK(ds.getDataType() == H5::PredType::IEEE_F32LE);
+    std::vector<hsize_t> dims(ds.getSpace().getSimpleExtentNdims());
+    ds.getSpace().getSimpleExtentDims(dims.data());
+    CHECK(std::vector<int64_t>(dims.begin(), dims.end()) == t.sizes().vec());
+    auto back = torch::empty(t.sizes(), torch::kFloat32);
+    ds.read(back.data_ptr<float>(), H5::PredType::NATIVE_FLOAT);
+    CHECK(torch::equal(back, t.contiguous()));
+  }
+  CHECK(string_attr(f, "format") == kFlowWeightsFormat);
+  CHECK(string_attr(f, "config_hash") == "abc123");
+  CHECK(string_attr(f, "config") == "model: {}\n");
+  CHECK(string_attr(f, "model_config").find("temporal_kernel: 3") != std::string::npos);
+  H5::Group m = f.openGroup("model");
+  int64_t v = 0;
+  m.openAttribute("temporal_kernel").read(H5::PredType::NATIVE_INT64, &v);
+  CHECK(v == 3);
+  m.openAttribute("mlp_hidden").read(H5::PredType::NATIVE_INT64, &v);
+  CHECK(v == prior.net()->transformer->opt.resolved_mlp_hidden());
+  CHECK(f.openDataSet("vocab").getSpace().getSimpleExtentNpoints() == static_cast<hssize_t>(kPriorWords.size()));
+  CHECK(f.openDataSet("probe/mask").getDataType() == H5::PredType::STD_U8LE);
+  CHECK(f.openDataSet("probe/ids").getDataType() == H5::PredType::STD_I64LE);
+
+  SECTION("a non-finite weight is refused, naming it, and nothing is written") {
+    {
+      torch::NoGradGuard ng;
+      prior.net()->transformer->final_ada->bias[0] = std::nanf("");
+    }
+    const std::string bad = (dir.path / "bad.h5").string();
+    expect_user_error([&] { write_flow_weights(prior, src, bad); },
+                      {"weight 'transformer.final_ada.bias' is not finite", "retrain"});
+    CHECK_FALSE(fs::exists(bad));
+  }
+}
