@@ -109,8 +109,9 @@ static void check_kept_settings(const StoredResults& stored, const std::vector<c
   for (const TableResult* t : kept)
     if (t->run.settings.empty())
       fail("{}: table {} was written before replays recorded their settings, so a partial replay cannot tell whether "
-           "it is comparable with this one; {}",
-           stored.file, t->spec.table.id, ways_out);
+           "it is comparable with this one; {}, or move {} away (results.h5 and summary.md then start from this "
+           "replay; the tables' .md/.csv/.tex files stay)",
+           stored.file, t->spec.table.id, ways_out, stored.file);
   for (const auto& [key, value] : current) {
     std::vector<std::string> differ;
     std::string was;
