@@ -8,8 +8,9 @@
 
 #include <algorithm>
 #include <cmath>
-#include <functional>
 #include <cstdlib>
+#include <functional>
+#include <optional>
 #include <filesystem>
 #include <fstream>
 #include <set>
@@ -17,6 +18,7 @@
 
 #include "core/atomic_file.h"
 #include "core/error.h"
+#include "core/isolated.h"
 #include "eval/metrics.h"
 #include "experiments/paired.h"
 
@@ -454,60 +456,124 @@ static void copy_training_curves(const fs::path& run_dir, H5::Group& dst) {
   write_string_attr(dst, "run_dir", run_dir.string());
 }
 
+// One '\n'-joined attribute for a list (components, overrides, settings).
+static std::string join_lines(const std::vector<std::string>& v) {
+  std::string s;
+  for (size_t i = 0; i < v.size(); ++i) s += (i ? "\n" : "") + v[i];
+  return s;
+}
+
+// /training/<experiment>|<run> of a component run directory.
+static std::string training_name(const std::string& run_dir) {
+  return fs::path(run_dir).parent_path().filename().string() + "|" + fs::path(run_dir).filename().string();
+}
+
+static void write_table_group(H5::Group& g, const TableResult& t) {
+  write_string_attr(g, "title", t.spec.table.title);
+  std::string cols;
+  for (auto& c : t.spec.table.columns) cols += (cols.empty() ? "" : ",") + c;
+  write_string_attr(g, "columns", cols);
+  // The run the table comes from: a partial replay keeps it beside tables of other runs.
+  write_string_attr(g, "commit", t.run.commit);
+  write_string_attr(g, "date", t.run.date);
+  write_string_attr(g, "threads", std::to_string(t.run.threads));
+  write_string_attr(g, "overrides", join_lines(t.run.overrides));
+  std::vector<std::string> settings;
+  for (const auto& [k, v] : t.run.settings) settings.push_back(k + "=" + v);
+  write_string_attr(g, "settings", join_lines(settings));
+  write_string_attr(g, "seconds", fmt::format("{:.3f}", t.seconds));
+  write_string_attr(g, "num_samples", std::to_string(t.num_samples));
+  write_string_attr(g, "repeats", std::to_string(t.repeats));
+  write_string_attr(g, "evaluator", t.evaluator);
+  write_string_attr(g, "health", t.health);
+  for (size_t i = 0; i < t.rows.size(); ++i) {
+    const auto& r = t.rows[i];
+    H5::Group rg = g.createGroup(h5_name(r.row_id));
+    write_string_attr(rg, "label", r.label);
+    write_string_attr(rg, "run_dir", r.run_dir);
+    write_string_attr(rg, "generator", r.generator_description);
+    write_string_attr(rg, "order", std::to_string(i));
+    write_string_attr(rg, "components", join_lines(r.components));
+    for (const auto& [k, v] : r.values) {
+      hsize_t n = v.size();
+      H5::DataSpace space(1, &n);
+      auto ds = rg.createDataSet(h5_name(k), H5::PredType::NATIVE_DOUBLE, space);
+      ds.write(v.data(), H5::PredType::NATIVE_DOUBLE);
+    }
+  }
+  if (t.paper) {
+    H5::Group pg = g.createGroup("_paper");
+    write_string_attr(pg, "source", t.paper->source);
+    for (size_t i = 0; i < t.paper->rows.size(); ++i) {
+      const auto& p = t.paper->rows[i];
+      H5::Group rg = pg.createGroup(fmt::format("{:03d}", i));
+      write_string_attr(rg, "method", p.method);
+      write_string_attr(rg, "section", p.section);
+      write_string_attr(rg, "kind", p.kind);
+      write_string_attr(rg, "ours_id", p.ours_id);
+      for (const auto& [k, v] : p.values) {
+        if (!v) continue;
+        H5::DataSpace scalar(H5S_SCALAR);
+        double x = *v;
+        rg.createDataSet(h5_name(k), H5::PredType::NATIVE_DOUBLE, scalar).write(&x, H5::PredType::NATIVE_DOUBLE);
+      }
+    }
+  }
+}
+
+// Copies `name` (an absolute path) of `src` to the same path in `dst`, bytes as they were.
+static void copy_object(const H5::H5File& src, H5::H5File& dst, const std::string& name) {
+  if (H5Ocopy(src.getId(), name.c_str(), dst.getId(), name.c_str(), H5P_DEFAULT, H5P_DEFAULT) < 0)
+    fail("{}: cannot copy {} from the earlier results; move the file away or re-run every table (omit --tables)",
+         src.getFileName(), name);
+}
+
 void write_results_h5(const std::string& path, const std::vector<TableResult>& tables, const std::string& profile,
-                      const std::string& commit, const Skeleton* skeleton,
-                      const std::vector<std::string>& extra_components) {
+                      const Skeleton* skeleton, const std::vector<std::string>& extra_components,
+                      const std::vector<ClaimCheck>& claims, const std::string& kept_from) {
+  bool any_kept = false;
+  for (const auto& t : tables) any_kept = any_kept || t.kept;
+  if (any_kept && kept_from.empty()) fail("write_results_h5: kept tables need the results.h5 they come from");
   AtomicOutput out(path);
   {
     H5::Exception::dontPrint();
+    std::optional<H5::H5File> old;
+    if (any_kept) try {
+        old.emplace(kept_from, H5F_ACC_RDONLY);
+      } catch (const H5::Exception& e) {
+        fail("{}: cannot read the earlier replay's results ({}); move it away or re-run every table (omit --tables)",
+             kept_from, e.getDetailMsg());
+      }
     H5::H5File f(out.tmp_path().string(), H5F_ACC_TRUNC);
     H5::Group root = f.openGroup("/");
     write_string_attr(root, "profile", profile);
+    // Every commit the tables come from, in table order (one for a full replay).
+    std::vector<std::string> commits;
+    for (const auto& t : tables)
+      if (std::find(commits.begin(), commits.end(), t.run.commit) == commits.end()) commits.push_back(t.run.commit);
+    std::string commit;
+    for (size_t i = 0; i < commits.size(); ++i) commit += (i ? ", " : "") + commits[i];
     write_string_attr(root, "commit", commit);
     H5::Group tg = f.createGroup("tables");
     for (const auto& t : tables) {
+      if (t.kept) {
+        copy_object(*old, f, "/tables/" + h5_name(t.spec.table.id));
+        continue;
+      }
       H5::Group g = tg.createGroup(h5_name(t.spec.table.id));
-      write_string_attr(g, "title", t.spec.table.title);
-      std::string cols;
-      for (auto& c : t.spec.table.columns) cols += (cols.empty() ? "" : ",") + c;
-      write_string_attr(g, "columns", cols);
-      for (size_t i = 0; i < t.rows.size(); ++i) {
-        const auto& r = t.rows[i];
-        H5::Group rg = g.createGroup(h5_name(r.row_id));
-        write_string_attr(rg, "label", r.label);
-        write_string_attr(rg, "run_dir", r.run_dir);
-        write_string_attr(rg, "generator", r.generator_description);
-        write_string_attr(rg, "order", std::to_string(i));
-        for (const auto& [k, v] : r.values) {
-          hsize_t n = v.size();
-          H5::DataSpace space(1, &n);
-          auto ds = rg.createDataSet(h5_name(k), H5::PredType::NATIVE_DOUBLE, space);
-          ds.write(v.data(), H5::PredType::NATIVE_DOUBLE);
-        }
-      }
-      if (t.paper) {
-        H5::Group pg = g.createGroup("_paper");
-        write_string_attr(pg, "source", t.paper->source);
-        for (size_t i = 0; i < t.paper->rows.size(); ++i) {
-          const auto& p = t.paper->rows[i];
-          H5::Group rg = pg.createGroup(fmt::format("{:03d}", i));
-          write_string_attr(rg, "method", p.method);
-          write_string_attr(rg, "section", p.section);
-          write_string_attr(rg, "kind", p.kind);
-          write_string_attr(rg, "ours_id", p.ours_id);
-          for (const auto& [k, v] : p.values) {
-            if (!v) continue;
-            H5::DataSpace scalar(H5S_SCALAR);
-            double x = *v;
-            rg.createDataSet(h5_name(k), H5::PredType::NATIVE_DOUBLE, scalar).write(&x, H5::PredType::NATIVE_DOUBLE);
-          }
-        }
-      }
+      write_table_group(g, t);
     }
     // Examples of each row (figures), the skeleton to draw them, training curves.
     H5::Group eg = f.createGroup("examples");
     std::set<std::string> components(extra_components.begin(), extra_components.end());
+    std::set<std::string> kept_components;
     for (const auto& t : tables) {
+      if (t.kept) {
+        const std::string name = "/examples/" + h5_name(t.spec.table.id);
+        if (old->nameExists(name)) copy_object(*old, f, name);
+        for (const auto& r : t.rows) kept_components.insert(r.components.begin(), r.components.end());
+        continue;
+      }
       H5::Group tg2;
       bool made = false;
       for (const auto& r : t.rows) {
@@ -540,13 +606,187 @@ void write_results_h5(const std::string& path, const std::vector<TableResult>& t
     H5::Group trg = f.createGroup("training");
     for (const auto& c : components) {
       if (!fs::exists(fs::path(c) / "metrics.csv")) continue;
-      std::string name = fs::path(c).parent_path().filename().string() + "|" + fs::path(c).filename().string();
+      std::string name = training_name(c);
       if (trg.nameExists(name)) continue;
       H5::Group cg = trg.createGroup(name);
       copy_training_curves(c, cg);
     }
+    // Kept tables' components: their curves as the earlier run stored them.
+    for (const auto& c : kept_components) {
+      const std::string name = training_name(c);
+      if (!trg.nameExists(name) && old->nameExists("/training/" + name)) copy_object(*old, f, "/training/" + name);
+    }
+    H5::Group cg = f.createGroup("claims");
+    for (size_t i = 0; i < claims.size(); ++i) {
+      const auto& c = claims[i];
+      if (cg.nameExists(h5_name(c.id))) continue;
+      H5::Group g = cg.createGroup(h5_name(c.id));
+      write_string_attr(g, "table", c.table);
+      write_string_attr(g, "text", c.text);
+      write_string_attr(g, "verdict", c.verdict);
+      write_string_attr(g, "evidence", c.evidence);
+      write_string_attr(g, "power", c.power);
+      write_string_attr(g, "definition", c.definition);
+      write_string_attr(g, "order", std::to_string(i));
+    }
   }
   out.commit();
+}
+
+// ------------------------------------------------------------------ results.h5, read back
+
+namespace {
+
+std::string read_string_attr(const H5::H5Object& obj, const char* name) {
+  if (!obj.attrExists(name)) return "";
+  H5::Attribute a = obj.openAttribute(name);
+  std::string v;
+  a.read(a.getStrType(), v);
+  while (!v.empty() && v.back() == '\0') v.pop_back();
+  return v == " " ? "" : v;  // write_string_attr stores an empty string as one space
+}
+
+std::vector<std::string> split_lines(const std::string& s) {
+  std::vector<std::string> out;
+  std::stringstream in(s);
+  for (std::string line; std::getline(in, line);)
+    if (!line.empty()) out.push_back(line);
+  return out;
+}
+
+std::string from_h5_name(std::string s) {
+  for (char& c : s)
+    if (c == '|') c = '/';
+  return s;
+}
+
+double number_attr(const H5::H5Object& obj, const char* name, const std::string& where) {
+  const std::string v = read_string_attr(obj, name);
+  if (v.empty()) return 0;
+  char* end = nullptr;
+  const double x = std::strtod(v.c_str(), &end);
+  if (end == v.c_str() || *end != '\0' || !std::isfinite(x))
+    fail("{}: attribute `{}` is '{}', not a number", where, name, v);
+  return x;
+}
+
+StoredResults read_results_h5_unchecked(const std::string& path, bool copy_all) {
+  StoredResults s;
+  s.file = path;
+  H5::Exception::dontPrint();
+  try {
+    H5::H5File f(path, H5F_ACC_RDONLY);
+    if (!f.nameExists("tables"))
+      fail("{}: no /tables group, so this is not a results.h5 of `motionctl reproduce`; move it away or re-run every "
+           "table (omit --tables)",
+           path);
+    const std::string root_commit = read_string_attr(f.openGroup("/"), "commit");
+    H5::Group tables = f.openGroup("tables");
+    for (hsize_t i = 0; i < tables.getNumObjs(); ++i) {
+      const std::string name = tables.getObjnameByIdx(i);
+      H5::Group g = tables.openGroup(name);
+      const std::string where = path + ": /tables/" + name;
+      TableResult t;
+      t.kept = true;
+      t.spec.table.id = from_h5_name(name);
+      t.spec.table.title = read_string_attr(g, "title");
+      std::stringstream cols(read_string_attr(g, "columns"));
+      for (std::string c; std::getline(cols, c, ',');) t.spec.table.columns.push_back(c);
+      // Written before tables recorded their run: the file's commit, no date or settings.
+      t.run.commit = g.attrExists("commit") ? read_string_attr(g, "commit") : root_commit;
+      t.run.date = read_string_attr(g, "date");
+      t.run.threads = static_cast<int>(number_attr(g, "threads", where));
+      t.run.overrides = split_lines(read_string_attr(g, "overrides"));
+      for (const auto& line : split_lines(read_string_attr(g, "settings"))) {
+        const size_t eq = line.find('=');
+        if (eq == std::string::npos) fail("{}: settings line '{}' is not key=value", where, line);
+        t.run.settings.emplace_back(line.substr(0, eq), line.substr(eq + 1));
+      }
+      t.seconds = number_attr(g, "seconds", where);
+      t.num_samples = static_cast<int>(number_attr(g, "num_samples", where));
+      t.repeats = static_cast<int>(number_attr(g, "repeats", where));
+      t.evaluator = read_string_attr(g, "evaluator");
+      t.health = read_string_attr(g, "health");
+      std::vector<std::pair<double, RowResult>> rows;
+      for (hsize_t j = 0; j < g.getNumObjs(); ++j) {
+        const std::string rname = g.getObjnameByIdx(j);
+        if (rname == "_paper") continue;
+        H5::Group rg = g.openGroup(rname);
+        RowResult r;
+        r.row_id = from_h5_name(rname);
+        r.label = read_string_attr(rg, "label");
+        r.run_dir = read_string_attr(rg, "run_dir");
+        r.generator_description = read_string_attr(rg, "generator");
+        r.components = split_lines(read_string_attr(rg, "components"));
+        r.cached = true;
+        for (hsize_t k = 0; k < rg.getNumObjs(); ++k) {
+          const std::string metric = rg.getObjnameByIdx(k);
+          H5::DataSet ds = rg.openDataSet(metric);
+          const hssize_t n = ds.getSpace().getSimpleExtentNpoints();
+          std::vector<double> v(static_cast<size_t>(std::max<hssize_t>(n, 0)));
+          if (!v.empty()) ds.read(v.data(), H5::PredType::NATIVE_DOUBLE);
+          r.values[from_h5_name(metric)] = std::move(v);
+        }
+        rows.emplace_back(number_attr(rg, "order", where + "/" + rname), std::move(r));
+      }
+      std::stable_sort(rows.begin(), rows.end(), [](const auto& a, const auto& b) { return a.first < b.first; });
+      for (auto& [order, r] : rows) {
+        RowConfig rc;
+        rc.id = r.row_id;
+        rc.label = r.label;
+        t.spec.rows.push_back(rc);
+        t.rows.push_back(std::move(r));
+      }
+      s.tables.push_back(std::move(t));
+    }
+    if (f.nameExists("claims")) {
+      H5::Group cg = f.openGroup("claims");
+      for (hsize_t i = 0; i < cg.getNumObjs(); ++i) {
+        H5::Group g = cg.openGroup(cg.getObjnameByIdx(i));
+        ClaimCheck c;
+        c.id = from_h5_name(cg.getObjnameByIdx(i));
+        c.table = read_string_attr(g, "table");
+        c.text = read_string_attr(g, "text");
+        c.verdict = read_string_attr(g, "verdict");
+        c.evidence = read_string_attr(g, "evidence");
+        c.power = read_string_attr(g, "power");
+        c.definition = read_string_attr(g, "definition");
+        s.claims.push_back(std::move(c));
+      }
+    }
+    // Every object a partial replay may copy, copied once into memory: a damaged one
+    // fails here (in the probe's child), not half-way through writing the merged file.
+    if (copy_all) {
+      H5::FileAccPropList fapl;
+      fapl.setCore(1 << 20, false);
+      H5::H5File mem("results_probe.h5", H5F_ACC_TRUNC, H5::FileCreatPropList::DEFAULT, fapl);
+      for (const char* top : {"tables", "examples", "training"})
+        if (f.nameExists(top)) copy_object(f, mem, std::string("/") + top);
+    }
+  } catch (const H5::Exception& e) {
+    fail("{}: cannot read the earlier replay's results ({}); move it away or re-run every table (omit --tables)",
+         path, e.getDetailMsg());
+  }
+  return s;
+}
+
+}  // namespace
+
+const TableResult* StoredResults::find(const std::string& table_id) const {
+  for (const auto& t : tables)
+    if (t.spec.table.id == table_id) return &t;
+  return nullptr;
+}
+
+const ClaimCheck* StoredResults::claim(const std::string& id) const {
+  for (const auto& c : claims)
+    if (c.id == id) return &c;
+  return nullptr;
+}
+
+StoredResults read_results_h5(const std::string& path) {
+  isolated_probe(fmt::format("the earlier replay's results '{}'", path), [&] { read_results_h5_unchecked(path, true); });
+  return read_results_h5_unchecked(path, false);
 }
 
 // ------------------------------------------------------------------ claims
@@ -624,6 +864,13 @@ std::vector<ClaimCheck> check_claims(const std::string& claims_file, const std::
     cc.id = str_or(c, "id", fmt::format("claim{}", idx));
     cc.text = str_or(c, "text");
     cc.table = str_or(c, "table");
+    {  // what a kept verdict must match: the entry as written, its text aside
+      YAML::Node def = YAML::Clone(c);
+      def.remove("text");
+      YAML::Emitter e;
+      e << YAML::Flow << def;
+      cc.definition = e.c_str();
+    }
     std::string kind = str_or(c, "kind");
     std::string metric = str_or(c, "metric");
     std::string dir = str_or(c, "direction", "lower");
@@ -633,7 +880,7 @@ std::vector<ClaimCheck> check_claims(const std::string& claims_file, const std::
     if (kind != "better" && kind != "best" && kind != "zero" && kind != "monotone")
       fail("{}: claim '{}' has unknown kind '{}' (better, best, zero, monotone)", claims_file, cc.id, kind);
     const TableResult* t = find_table(tables, cc.table);
-    if (!t) {
+    if (!t || t->kept) {  // a kept table's claims keep their run's verdicts (reproduce.cpp, merge_claims)
       cc.verdict = "not run";
       cc.evidence = "table " + cc.table + " was not part of this reproduction";
       out.push_back(cc);
@@ -696,10 +943,56 @@ std::vector<ClaimCheck> check_claims(const std::string& claims_file, const std::
 }
 
 std::string render_summary(const std::vector<ClaimCheck>& claims, const std::vector<TableResult>& tables,
-                           const std::string& profile, double seconds, const std::string& commit) {
+                           const std::string& profile, double seconds) {
   std::string s = fmt::format("# Reproduction summary — profile `{}`\n\n", profile);
-  s += fmt::format("Commit {}; {} tables; wall time {:.1f} min (including training of missing components).\n\n",
-                   commit, tables.size(), seconds / 60.0);
+  // The runs the tables come from, in table order: one for a full replay, more when a
+  // partial replay (`--tables`) kept tables of earlier runs.
+  std::vector<std::pair<const ReplayRun*, std::vector<const TableResult*>>> runs;
+  std::map<const TableResult*, size_t> run_of;
+  int fresh = 0;
+  for (const auto& t : tables) {
+    fresh += !t.kept;
+    auto it = std::find_if(runs.begin(), runs.end(), [&](const auto& r) { return r.first->same_run(t.run); });
+    if (it == runs.end()) {
+      runs.emplace_back(&t.run, std::vector<const TableResult*>{});
+      it = runs.end() - 1;
+    }
+    it->second.push_back(&t);
+    run_of[&t] = static_cast<size_t>(it - runs.begin()) + 1;
+  }
+  if (runs.size() <= 1) {
+    s += fmt::format("Commit {}; {} tables; wall time {:.1f} min (including training of missing components).\n\n",
+                     runs.empty() ? "" : runs[0].first->commit, tables.size(), seconds / 60.0);
+  } else {
+    s += fmt::format("**Assembled from {} runs.** A partial replay (`--tables`) replaces the tables it re-runs and "
+                     "keeps every other table, and the verdicts of its claims, as the run that produced it left them "
+                     "(docs/choices.md, \"Partial replays\"). The latest run re-ran {} of the {} tables in {:.1f} min "
+                     "(including training of missing components).\n\n",
+                     runs.size(), fresh, tables.size(), seconds / 60.0);
+  }
+  s += "| Run | Commit | Date (UTC) | Threads | Overrides (`--set`) | Tables |\n|---|---|---|---|---|---|\n";
+  for (size_t i = 0; i < runs.size(); ++i) {
+    const ReplayRun& r = *runs[i].first;
+    const bool latest = std::any_of(runs[i].second.begin(), runs[i].second.end(), [](auto* t) { return !t->kept; });
+    std::string ov, ids;
+    for (auto& o : r.overrides) ov += (ov.empty() ? "`" : ", `") + o + "`";
+    for (auto* t : runs[i].second) ids += (ids.empty() ? "" : ", ") + t->spec.table.id;
+    s += fmt::format("| {}{} | {} | {} | {} | {} | {} |\n", i + 1, latest ? " (latest)" : "", r.commit,
+                     r.date.empty() ? "unknown" : r.date, r.threads > 0 ? std::to_string(r.threads) : "all cores",
+                     ov.empty() ? "–" : ov, ids);
+  }
+  // Settings are checked equal across runs before a partial replay keeps a table, so
+  // the first table's stand for all of them.
+  const TableResult* with_settings = nullptr;
+  for (const auto& t : tables)
+    if (!t.run.settings.empty()) with_settings = with_settings ? with_settings : &t;
+  if (with_settings) {
+    std::string list;
+    for (const auto& [k, v] : with_settings->run.settings) list += (list.empty() ? "`" : ", `") + k + "=" + v + "`";
+    s += fmt::format("\nSettings of every table (a partial replay refuses to keep tables replayed with others): {}.\n",
+                     list);
+  }
+  s += "\n";
   int holds = 0, contra = 0, undecided = 0, notrun = 0;
   for (auto& c : claims)
     (c.verdict == "holds" ? holds : c.verdict == "contradicted" ? contra : c.verdict == "undecided" ? undecided : notrun)++;
@@ -719,8 +1012,9 @@ std::string render_summary(const std::vector<ClaimCheck>& claims, const std::vec
     s += fmt::format("| {} | {} | **{}** | {} | {} |\n", c.text, c.table, c.verdict, c.evidence, c.power);
   s += "\n## Tables\n\n";
   for (auto& t : tables)
-    s += fmt::format("- [{}]({}.md): {} ({} rows, {:.0f} s)\n", t.spec.table.id, t.spec.table.id,
-                     t.spec.table.title, t.rows.size(), t.seconds);
+    s += fmt::format("- [{}]({}.md): {} ({} rows, {:.0f} s{})\n", t.spec.table.id, t.spec.table.id,
+                     t.spec.table.title, t.rows.size(), t.seconds,
+                     runs.size() > 1 ? fmt::format(", run {}", run_of[&t]) : "");
   return s;
 }
 

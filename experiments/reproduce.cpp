@@ -1,13 +1,19 @@
 // The reproduce orchestrator: profile -> tables -> rows (cached) -> rendered
-// tables, results.h5, claims summary and figures.
+// tables, results.h5, claims summary and figures. A partial replay (--tables) merges
+// its tables into what results/<profile>/ already holds.
 #include "experiments/reproduce.h"
 
 #include <algorithm>
 #include <fmt/ranges.h>
 #include <chrono>
 #include <cstdio>
+#include <ctime>
 #include <filesystem>
 #include <iostream>
+#include <optional>
+#include <set>
+
+#include <yaml-cpp/yaml.h>
 
 #include "core/atomic_file.h"
 #include "core/error.h"
@@ -17,6 +23,7 @@
 #include "experiments/prior_health.h"
 #include "experiments/report.h"
 #include "experiments/row_evaluator.h"
+#include "train/pretrained.h"
 #include "train/train_job.h"
 
 namespace mc {
@@ -56,6 +63,117 @@ static std::string git_commit() {
   return out.empty() ? "unknown" : out;
 }
 
+// What the numbers of a replay depend on besides the specs, key=value, from the
+// profile's own declarations (dump_config): a partial replay keeps an earlier table only
+// when these match. profile.threads is left out (shown, not checked: it does not change
+// what is measured), and so is protocol.repeats (ignored: profile.repeats counts
+// replications). The data and evaluator are added by content once they exist
+// (content_settings).
+static std::vector<std::pair<std::string, std::string>> replay_settings(ProfileFile& pf) {
+  YAML::Node root = YAML::Load(dump_config(pf));
+  std::vector<std::pair<std::string, std::string>> out;
+  auto text = [](const YAML::Node& n) {
+    if (n.IsScalar()) return n.as<std::string>();
+    YAML::Emitter e;
+    e << YAML::Flow << n;
+    return std::string(e.c_str());
+  };
+  for (const char* k : {"num_samples", "repeats", "seed", "split", "data", "evaluator", "device", "substitutions",
+                        "trained_configs"})
+    out.emplace_back(fmt::format("profile.{}", k), text(root["profile"][k]));
+  for (auto it = root["protocol"].begin(); it != root["protocol"].end(); ++it) {
+    const std::string k = it->first.as<std::string>();
+    if (k != "repeats") out.emplace_back("protocol." + k, text(it->second));
+  }
+  return out;
+}
+
+// The ground truth and evaluator by content (a file regenerated in place counts as
+// another): known once the fixture is built and the evaluator trained.
+static std::vector<std::pair<std::string, std::string>> content_settings(const ProfileConfig& p,
+                                                                          const std::string& evaluator_run) {
+  return {{"data_sha1", file_sha1(resolve_data_path(p.data))},
+          {"evaluator_sha1", file_sha1(fs::path(evaluator_run) / "checkpoints" / "final.pt")}};
+}
+
+// A partial replay keeps `kept` from `stored`: refuses (exit 2) when one of them was
+// replayed with other settings than `current`, naming the setting, both values and the
+// ways out.
+static void check_kept_settings(const StoredResults& stored, const std::vector<const TableResult*>& kept,
+                                const std::vector<std::pair<std::string, std::string>>& current,
+                                const std::string& profile) {
+  const std::string ways_out = fmt::format(
+      "re-run every table to replace all of results/{0}/ (omit --tables), or write this replay to a new "
+      "folder (--set profile.name=<new name>)",
+      profile);
+  for (const TableResult* t : kept)
+    if (t->run.settings.empty())
+      fail("{}: table {} was written before replays recorded their settings, so a partial replay cannot tell whether "
+           "it is comparable with this one; {}, or move {} away (results.h5 and summary.md then start from this "
+           "replay; the tables' .md/.csv/.tex files stay)",
+           stored.file, t->spec.table.id, ways_out, stored.file);
+  for (const auto& [key, value] : current) {
+    std::vector<std::string> differ;
+    std::string was;
+    for (const TableResult* t : kept) {
+      auto it = std::find_if(t->run.settings.begin(), t->run.settings.end(),
+                             [&, k = key](const auto& kv) { return kv.first == k; });
+      const std::string v = it == t->run.settings.end() ? "(not recorded)" : it->second;
+      if (v == value) continue;
+      if (differ.empty()) was = v;
+      if (v == was) differ.push_back(t->spec.table.id);
+    }
+    if (differ.empty()) continue;
+    const bool by_content = key == "data_sha1" || key == "evaluator_sha1";
+    const std::string restore =
+        was == "(not recorded)" ? "replay them again with this version"
+        : by_content ? fmt::format("restore the {} they were replayed with",
+                                   key == "data_sha1" ? "ground-truth file" : "evaluator checkpoint")
+                     : fmt::format("re-run with the earlier value (--set {}={})", key, was);
+    fail("{}: a partial replay keeps the tables it does not re-run, but {} {} replayed with {}={} and this run has "
+         "{}={}: a summary mixing them would compare different protocols. Either {}, {}",
+         stored.file, fmt::join(differ, ", "), differ.size() == 1 ? "was" : "were", key, was, key, value, restore,
+         ways_out);
+  }
+}
+
+// Claims of a merged summary: those on re-run tables as decided now; those on kept
+// tables as the run that produced the table decided them, when claims.yaml still
+// defines them the same way (else "not run", naming the table to re-run).
+static std::vector<ClaimCheck> merge_claims(std::vector<ClaimCheck> decided, const std::set<std::string>& rerun,
+                                            const std::vector<TableResult>& tables, const StoredResults* stored) {
+  for (auto& c : decided) {
+    if (rerun.count(c.table)) continue;
+    auto t = std::find_if(tables.begin(), tables.end(), [&](const TableResult& x) { return x.spec.table.id == c.table; });
+    if (t == tables.end() || !t->kept || !stored) continue;
+    const ClaimCheck* old = stored->claim(c.id);
+    if (old && old->table == c.table && old->definition == c.definition) {
+      c.verdict = old->verdict;
+      c.evidence = old->evidence;
+      c.power = old->power;
+    } else {
+      c.verdict = "not run";
+      c.evidence = fmt::format("table {} is kept from run {} ({}), which did not decide this claim as claims.yaml "
+                               "now defines it; re-run the table: --tables {}",
+                               c.table, t->run.commit, t->run.date.empty() ? "date unknown" : t->run.date, c.table);
+      c.power.clear();
+    }
+  }
+  return decided;
+}
+
+// UTC start of a run, to the millisecond: it tells two runs of the same commit apart.
+static std::string run_timestamp() {
+  const auto now = std::chrono::system_clock::now();
+  const std::time_t t = std::chrono::system_clock::to_time_t(now);
+  const auto ms = std::chrono::duration_cast<std::chrono::milliseconds>(now.time_since_epoch()).count() % 1000;
+  std::tm tm{};
+  gmtime_r(&t, &tm);
+  char buf[32];
+  std::strftime(buf, sizeof buf, "%Y-%m-%dT%H:%M:%S", &tm);
+  return fmt::format("{}.{:03d}Z", buf, static_cast<int>(ms));
+}
+
 ReproduceResult reproduce(const ReproduceOptions& opt) {
   auto t0 = std::chrono::steady_clock::now();
   std::string profile_file = opt.profile;
@@ -69,10 +187,12 @@ ReproduceResult reproduce(const ReproduceOptions& opt) {
 
   // Load and check every selected spec before anything runs: a typo fails in seconds.
   std::vector<TableSpec> specs;
+  std::vector<std::string> spec_ids;  // every known table, in spec order
   std::set<std::string> seen;
   for (const auto& file : list_table_specs(opt.specs_root)) {
     TableSpec s = load_table_spec(file);
     if (!seen.insert(s.table.id).second) fail("{}: table id '{}' is used by two specs", file, s.table.id);
+    spec_ids.push_back(s.table.id);
     if (!selected(s.table.id, opt.tables)) continue;
     for (auto& row : s.rows) resolve_row(pf.profile, s, row);
     specs.push_back(std::move(s));
@@ -82,20 +202,53 @@ ReproduceResult reproduce(const ReproduceOptions& opt) {
     for (auto& id : seen) ids += " " + id;
     fail("--tables {} matched no experiment spec; known tables:{}", fmt::format("{}", fmt::join(opt.tables, ",")), ids);
   }
+  std::set<std::string> selected_ids;
+  for (const auto& s : specs) selected_ids.insert(s.table.id);
 
   ReproduceResult res;
   fs::path out_dir = fs::path(resolve_data_path(pf.profile.results_root)) / pf.profile.name;
   fs::create_directories(out_dir);
   res.results_dir = out_dir.string();
-  const std::string commit = git_commit();
+  const fs::path results_file = out_dir / "results.h5";
+  ReplayRun run;
+  run.commit = git_commit();
+  run.date = run_timestamp();
+  run.threads = pf.profile.threads;
+  run.overrides = opt.profile_overrides;
+  run.settings = replay_settings(pf);
+
+  // A partial replay (--tables) merges into what results/<profile>/ holds: every other
+  // known table stays as its run left it, if that run had the same settings. Checked
+  // before anything trains or runs; a full replay replaces everything.
+  std::optional<StoredResults> stored;
+  std::vector<const TableResult*> kept;
+  if (!opt.tables.empty() && fs::exists(results_file)) {
+    stored = read_results_h5(results_file.string());
+    for (const auto& t : stored->tables) {
+      if (selected_ids.count(t.spec.table.id)) continue;
+      if (!seen.count(t.spec.table.id)) {
+        std::cerr << fmt::format("note: {} holds table {}, which no spec defines any more: dropped\n",
+                                 results_file.string(), t.spec.table.id);
+        continue;
+      }
+      kept.push_back(&t);
+    }
+    check_kept_settings(*stored, kept, run.settings, pf.profile.name);
+  }
 
   // Row runs and every component the rows train live under profile.runs_root.
   RunsRootScope components_root(pf.profile.runs_root);
   take_trained_runs();
   RowEvaluator ev(pf.profile);
   const std::vector<std::string> evaluator_runs = take_trained_runs();  // its training curve goes in results.h5
+  {
+    auto by_content = content_settings(pf.profile, ev.evaluator_run());
+    if (stored) check_kept_settings(*stored, kept, by_content, pf.profile.name);
+    run.settings.insert(run.settings.end(), by_content.begin(), by_content.end());
+  }
   ProfileHealth health(pf, ev.data());  // every prior the rows use, checked once
   std::vector<TableResult> results;
+  std::set<std::string> failed_tables;
   for (const auto& spec : specs) {
     auto ts = std::chrono::steady_clock::now();
     TableResult tr;
@@ -103,26 +256,28 @@ ReproduceResult reproduce(const ReproduceOptions& opt) {
     tr.evaluator = ev.evaluator_run();
     tr.num_samples = spec.table.num_samples > 0 ? spec.table.num_samples : pf.profile.num_samples;
     tr.repeats = pf.profile.repeats;
+    tr.run = run;
     if (!spec.table.paper_numbers.empty()) {
       std::string pn = resolve_data_path(spec.table.paper_numbers);
       if (!fs::exists(pn)) fail("{}: table.paper_numbers '{}' does not exist", spec.file, spec.table.paper_numbers);
       tr.paper = load_paper_table(pn);
     }
     std::cerr << fmt::format("== {} ({} rows)\n", spec.table.id, spec.rows.size());
-    std::vector<RowConfig> kept;
+    std::vector<RowConfig> kept_rows;
     for (const auto& row : spec.rows) {
       try {
         RowResult r = run_row(pf, spec, row, ev);
         std::cerr << fmt::format("   {:<28} {}{}\n", row.id, r.cached ? "(cached) " : "",
                                  format_cell(r.values, spec.table.columns.front(), true));
         tr.rows.push_back(std::move(r));
-        kept.push_back(row);
+        kept_rows.push_back(row);
       } catch (const UserError& e) {
         res.failures.push_back(fmt::format("{} / {}: {}", spec.table.id, row.id, e.what()));
+        failed_tables.insert(spec.table.id);
         std::cerr << fmt::format("   {:<28} FAILED: {}\n", row.id, e.what());
       }
     }
-    tr.spec.rows = kept;
+    tr.spec.rows = kept_rows;
     // Derived columns (table.derived, e.g. Table VII's cost relative to the generator
     // alone): computed from the measured metric once every row is in. Without the base
     // row (it failed) or its metric the column stays empty.
@@ -142,24 +297,36 @@ ReproduceResult reproduce(const ReproduceOptions& opt) {
     }
     if (pf.profile.health) tr.health = health.table_line(tr);  // before the timing: not the table's cost
     tr.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - ts).count();
-    RenderedTable rt = render_table(tr);
-    fs::path base = out_dir / spec.table.id;
-    fs::create_directories(base.parent_path());
-    write_file_atomic(base.string() + ".md", rt.markdown);
-    write_file_atomic(base.string() + ".csv", rt.csv);
-    write_file_atomic(base.string() + ".tex", rt.latex);
-    res.table_files.push_back(base.string() + ".md");
     results.push_back(std::move(tr));
   }
-  write_results_h5((out_dir / "results.h5").string(), results, pf.profile.name, commit, &ev.data().skeleton,
-                   evaluator_runs);
-  if (pf.profile.health) {
-    health.write(out_dir);
-    res.health_file = (out_dir / "health.md").string();
-    for (const auto& c : health.components()) {
-      ++res.priors_checked;
-      res.priors_healthy += c.healthy();
+
+  // Every known table in spec order: re-run ones as run now, the others as kept. A
+  // re-run table whose rows failed does not replace a complete earlier one of the same
+  // settings (a failed partial replay leaves the previous results as they were).
+  std::vector<TableResult> tables;
+  std::set<std::string> replaced;
+  for (const auto& id : spec_ids) {
+    auto fresh = std::find_if(results.begin(), results.end(), [&](const TableResult& t) { return t.spec.table.id == id; });
+    const TableResult* old = stored ? stored->find(id) : nullptr;
+    if (fresh != results.end()) {
+      if (!opt.tables.empty() && failed_tables.count(id) && old && old->run.settings == run.settings) {
+        res.failures.push_back(fmt::format("{}: rows failed, so the table is kept from run {} ({})", id,
+                                           old->run.commit, old->run.date));
+        tables.push_back(*old);
+        continue;
+      }
+      replaced.insert(id);
+      tables.push_back(std::move(*fresh));
+    } else if (old && std::find(kept.begin(), kept.end(), old) != kept.end()) {
+      tables.push_back(*old);
     }
+  }
+
+  // Prior health over every table of the merged results (kept tables' components were
+  // checked by their run: the checks are reused from RUN_DIR/health.json).
+  if (pf.profile.health) {
+    for (const auto& t : tables)
+      if (t.kept) health.table_line(t);
   }
   double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   std::vector<ClaimCheck> claims;
@@ -167,13 +334,20 @@ ReproduceResult reproduce(const ReproduceOptions& opt) {
   ClaimOptions co;
   co.reference = &ev.realism();
   co.protocol = &pf.protocol;
-  if (fs::exists(claims_file)) claims = check_claims(claims_file.string(), results, co);
+  if (fs::exists(claims_file))
+    claims = merge_claims(check_claims(claims_file.string(), tables, co), replaced, tables, stored ? &*stored : nullptr);
   for (auto& c : claims)
     (c.verdict == "holds"          ? res.claims_hold
      : c.verdict == "contradicted" ? res.claims_contradicted
      : c.verdict == "undecided"    ? res.claims_undecided
                                    : res.claims_not_run)++;
-  std::string summary = render_summary(claims, results, pf.profile.name, seconds, commit);
+  std::string summary = render_summary(claims, tables, pf.profile.name, seconds);
+  if (pf.profile.health) {
+    for (const auto& c : health.components()) {
+      ++res.priors_checked;
+      res.priors_healthy += c.healthy();
+    }
+  }
   if (res.priors_checked > 0)
     summary += fmt::format("\nPrior health ([health.md](health.md)): {} of {} trained priors and tokenizers healthy "
                            "at N = {}.\n",
@@ -182,10 +356,30 @@ ReproduceResult reproduce(const ReproduceOptions& opt) {
     summary += "\n## Rows that failed\n\n";
     for (auto& f : res.failures) summary += "- " + f + "\n";
   }
+
+  // Written last, results.h5 first: a replay that stops before here leaves every file of
+  // results/<profile>/ as it was. Tables kept from earlier runs keep their files.
+  write_results_h5(results_file.string(), tables, pf.profile.name, &ev.data().skeleton, evaluator_runs, claims,
+                   stored ? stored->file : "");
+  for (const auto& t : tables) {
+    if (t.kept) continue;
+    RenderedTable rt = render_table(t);
+    fs::path base = out_dir / t.spec.table.id;
+    fs::create_directories(base.parent_path());
+    write_file_atomic(base.string() + ".md", rt.markdown);
+    write_file_atomic(base.string() + ".csv", rt.csv);
+    write_file_atomic(base.string() + ".tex", rt.latex);
+    res.table_files.push_back(base.string() + ".md");
+  }
+  if (pf.profile.health) {
+    health.write(out_dir);
+    res.health_file = (out_dir / "health.md").string();
+  }
   write_file_atomic(out_dir / "summary.md", summary);
+  // Figures from the merged results.h5: every table's, so they never disagree with it.
   if (opt.figures) {
     std::string cmd = fmt::format("\"{}\" \"{}\" \"{}\" --out \"{}\"", opt.python,
-                                  resolve_data_path("tools/figures.py"), (out_dir / "results.h5").string(),
+                                  resolve_data_path("tools/figures.py"), results_file.string(),
                                   (out_dir / "figures").string());
     if (std::system(cmd.c_str()) != 0) res.failures.push_back("figures: tools/figures.py failed (see above)");
   }

@@ -173,6 +173,15 @@ TEST_CASE("motionctl reproduce: reduced smoke replay of the ProjFlow tables", "[
   INFO(again.output);
   REQUIRE(again.exit_code == 0);
   CHECK(again.output.find("(cached)") != std::string::npos);
+  // ... and merges: Tables 1 and 2 and their claims stay in results.h5 and summary.md.
+  {
+    H5::H5File f((out / "results.h5").string(), H5F_ACC_RDONLY);
+    CHECK(f.nameExists("tables/projflow|table1"));
+    CHECK(f.nameExists("tables/projflow|table2"));
+    CHECK(f.nameExists("examples/projflow|table1"));
+  }
+  CHECK(slurp(out / "summary.md").find("ProjFlow satisfies every joint's constraints exactly") != std::string::npos);
+  CHECK(slurp(out / "summary.md").find("](projflow/table1.md)") != std::string::npos);
 
   // Unknown table ids and broken profiles are exit 2 with a message.
   auto bad = run_motionctl(fmt::format("reproduce --profile {} --tables nosuchtable --no-figures", profile));
