@@ -30,6 +30,18 @@ struct HashedFile {
 
 std::string short_sha(const std::string& sha) { return sha.substr(0, 12); }
 
+// The UTC time a run finished, as its DONE marker holds it ("2026-11-23T14:46:34Z",
+// which orders as text); "" when absent or not such a time.
+std::string done_time(const fs::path& run_dir) {
+  std::error_code ec;
+  if (!fs::is_regular_file(run_dir / "DONE", ec)) return "";
+  std::string t = read_file(run_dir / "DONE");
+  while (!t.empty() && (t.back() == '\n' || t.back() == ' ')) t.pop_back();
+  const bool iso = t.size() == 20 && t[4] == '-' && t[7] == '-' && t[10] == 'T' && t[13] == ':' && t[16] == ':' &&
+                   t[19] == 'Z';
+  return iso ? t : "";
+}
+
 }  // namespace
 
 std::string weights_sha1(const fs::path& run_dir) {
@@ -148,11 +160,21 @@ DependencyCheck check_dependencies(const fs::path& run_dir, const std::vector<Re
     return c;
   }
   if (now.empty()) return c;  // nothing it could be stale against
-  // A legacy run: the run directories its outputs name are all there is. Another run
-  // of the same experiment as a dependency resolved now (e.g. prior/flow_standard-<old
-  // hash> for prior/flow_standard-<new hash>) means its config changed since.
+  // A legacy run: the run directories its outputs name, and when runs finished, are
+  // all there is. Another run of the same experiment as a dependency resolved now
+  // (e.g. prior/flow_standard-<old hash> for prior/flow_standard-<new hash>) means its
+  // config changed since; a dependency that finished after this run did (DONE holds
+  // the UTC time a run finished, and travels with a copied or shipped run) was trained
+  // again since: make's rule, on the recorded times rather than file times.
+  const std::string own_done = done_time(run_dir);
   const std::vector<std::string> named = run_dependencies(run_dir);
   for (const auto& n : now) {
+    const std::string dep_done = done_time(n.run);
+    if (!own_done.empty() && !dep_done.empty() && dep_done > own_done) {
+      c.reasons.push_back(fmt::format("{} {} as it was before {}, which was trained again at {}", n.what, n.run,
+                                      own_done, dep_done));
+      continue;
+    }
     const std::string key = run_key(n.run);
     const std::string experiment = fs::path(key).parent_path().string();
     bool same = false;

@@ -68,10 +68,11 @@ struct DependencyCheck {
 };
 
 // The check of a run directory against the dependencies resolved now: its record
-// when it has one. Without one, the runs its outputs/*.yaml name (`*_run` keys,
-// pretrained.h run_dependencies) stand in: a run that names another run of a
-// dependency's experiment than the one resolved now (its config changed since) is
-// stale; otherwise it is unrecorded.
+// when it has one. Without one (a run trained before records existed) it is stale
+// when a dependency finished after it did (their DONE times), or when the runs its
+// outputs/*.yaml name (`*_run` keys, pretrained.h run_dependencies) include another
+// run of a dependency's experiment than the one resolved now (its config changed
+// since); otherwise it is unrecorded.
 DependencyCheck check_dependencies(const fs::path& run_dir, const std::vector<ResolvedDependency>& now);
 
 // "what run (sha1 1a2b3c4d5e6f)" of each dependency, comma separated, for messages.
