@@ -51,7 +51,7 @@ void write_config(const std::string& from, const fs::path& to, const std::vector
 
 }  // namespace
 
-TEST_CASE("dependency record: written and read back; changes named by run, then by what", "[train]") {
+TEST_CASE("dependency record: written and read back, changes named by run, then by what", "[train]") {
   TempDir t("deprec");
   const std::vector<ResolvedDependency> deps = {dep("prior", "runs/prior/flow_tiny-aaaaaaaaaaaa", std::string(40, 'a')),
                                                 dep("model.text_encoder", "/x/y/text/clip", std::string(40, 'b'))};
@@ -145,7 +145,7 @@ TEST_CASE("dependency record: the weights' fingerprint is final.pt's SHA-1 and f
   CHECK(weights_sha1(t.path) != a);
 }
 
-TEST_CASE("stale dependents: retraining a dependency retrains what was built on it, transitively; nothing else",
+TEST_CASE("stale dependents: retraining a dependency retrains what was built on it, transitively, nothing else",
           "[train]") {
   // text encoder -> flow prior (frozen text encoder) -> ControlNet, each 2 steps on a
   // 60-clip fixture. The text encoder and the prior are named runs whose config files the
