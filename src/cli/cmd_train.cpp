@@ -115,7 +115,7 @@ void add_ship_command(CLI::App& app) {
     for (auto& o : a->overrides) retrain += " " + o;
     retrain += " run.force=true";
     PretrainedEntry e = ship_run(run, a->root.empty() ? pretrained_root() : fs::path(a->root), a->file,
-                                 a->overrides, run_config_hash(a->file, a->overrides), retrain);
+                                 a->overrides, run_config_hash(a->file, a->overrides), retrain, &std::cerr);
     std::cout << fmt::format("shipped {} as {} (final.pt sha1 {})\n", run.string(), e.dir.string(), e.sha1);
   });
 }

@@ -33,18 +33,25 @@ std::string train_on_demand(const std::string& config, const std::vector<std::st
 
 namespace {
 
-// Trains (or finds) each dependency named by its training config and notes the run.
+// Trains (or finds) each dependency named by its training config and notes the run;
+// collects every dependency with its weights' fingerprint.
 class DependencyResolver : public DependencyVisitor {
  public:
   explicit DependencyResolver(std::ostream* log) : log_(log) {}
   void operator()(const char* what, std::string& run_dir, std::string& config,
                   std::vector<std::string>& overrides) override {
-    if (!run_dir.empty() || config.empty()) return;  // a finished run given, or no dependency
+    if (!run_dir.empty()) {  // a finished run given: used as it is
+      if (std::string sha = weights_sha1(run_dir); !sha.empty()) resolved.push_back({what, run_dir, "", {}, sha});
+      return;
+    }
+    if (config.empty()) return;  // no dependency
     bool trained = false;
     const std::string dir = train_on_demand(config, overrides, &trained);
     note_trained_run(config, overrides, dir);
     if (log_) *log_ << fmt::format("{}: {} ({})\n", what, dir, trained ? "trained" : "already trained");
+    resolved.push_back({what, dir, config, overrides, weights_sha1(dir)});
   }
+  std::vector<ResolvedDependency> resolved;
 
  private:
   std::ostream* log_;
@@ -52,15 +59,17 @@ class DependencyResolver : public DependencyVisitor {
 
 }  // namespace
 
-void resolve_dependencies(Config& cfg, std::ostream* log) {
+std::vector<ResolvedDependency> resolve_dependencies(Config& cfg, std::ostream* log) {
   DependencyResolver r(log);
   for_each_dependency(cfg, r);
+  return r.resolved;
 }
 
-void resolve_dependencies(Component& c, std::ostream* log) {
-  if (!c.cfg) return;
+std::vector<ResolvedDependency> resolve_dependencies(Component& c, std::ostream* log) {
+  if (!c.cfg) return {};
   DependencyResolver r(log);
   for_each_dependency(*c.cfg, r);
+  return r.resolved;
 }
 
 }  // namespace mc

@@ -9,6 +9,7 @@
 #include <vector>
 
 #include "core/config.h"
+#include "train/dependency_record.h"
 
 namespace mc {
 
@@ -22,10 +23,14 @@ std::string train_on_demand(const std::string& config, const std::vector<std::st
 
 // Every dependency `cfg` declares, in its sections and components too: one named by
 // its training config is trained unless finished (train_on_demand; run_train resolves
-// that run's own model dependencies the same way) and noted in core/trained_runs.h;
-// one named by a run directory is used as it is. `log` (may be null) gets one line
-// per dependency: "<what>: <run dir> (trained|already trained)".
-void resolve_dependencies(Config& cfg, std::ostream* log = &std::cerr);
-void resolve_dependencies(Component& c, std::ostream* log = &std::cerr);
+// that run's own model dependencies the same way, and trains a finished one again
+// when the components it was built on changed since: train/dependency_record.h) and
+// noted in core/trained_runs.h; one named by a run directory is used as it is.
+// Returns each one with the SHA-1 of its final weights (a run directory without
+// final.pt is left out: its loader names what is missing), in declaration order.
+// `log` (may be null) gets one line per dependency trained or found:
+// "<what>: <run dir> (trained|already trained)".
+std::vector<ResolvedDependency> resolve_dependencies(Config& cfg, std::ostream* log = &std::cerr);
+std::vector<ResolvedDependency> resolve_dependencies(Component& c, std::ostream* log = &std::cerr);
 
 }  // namespace mc

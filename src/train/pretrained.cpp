@@ -13,7 +13,9 @@
 
 #include "core/atomic_file.h"
 #include "core/error.h"
+#include "core/run_dir.h"
 #include "core/source_dir.h"
+#include "train/dependency_record.h"
 
 namespace mc {
 
@@ -126,18 +128,33 @@ bool install_pretrained(const std::string& experiment, const std::string& name, 
   copy_tree_atomic(e->dir, run_dir);
   if (log) *log << fmt::format("using the shipped {} ({}) for {}\n", e->name, e->dir.string(), e->config);
   // The runs it was trained on (a ControlNet's base, a TMD prior's tokenizer, an
-  // adapter's TMD prior) come with it: they were shipped under the names it records.
-  for (const std::string& dep : run_dependencies(run_dir)) {
-    const fs::path d(dep);
-    if (fs::exists(d)) continue;
-    auto de = find_pretrained(root, d.parent_path().filename().string(), d.filename().string());
-    if (de) install_pretrained(de->experiment, de->name, de->config_hash, d, log);
+  // adapter's TMD prior) come with it: they were shipped under the names it records,
+  // and go beside it, under the same runs root, where its config resolves them.
+  const fs::path runs_root = run_dir.parent_path().parent_path();
+  std::vector<ResolvedDependency> shipped_deps;
+  for (const auto& [key, dep] : run_dependency_fields(run_dir)) {
+    const fs::path name(run_key(dep));
+    const fs::path d = runs_root / name;
+    auto de = find_pretrained(root, name.parent_path().string(), name.filename().string());
+    if (!de) continue;
+    if (!fs::exists(d)) install_pretrained(de->experiment, de->name, de->config_hash, d, log);
+    shipped_deps.push_back({key, d.string(), de->config, de->overrides, de->sha1});
   }
+  // Shipped before runs recorded their dependencies: it was shipped as one set with the
+  // runs it names (`ship` refuses a run whose record disagrees with the shipped
+  // dependency), so those are what it was built on. A dependency it names that is not
+  // shipped leaves it unrecorded (train() then warns once).
+  const auto named = run_dependencies(run_dir);
+  if (!read_dependency_record(run_dir) && !named.empty() && shipped_deps.size() == named.size())
+    write_dependency_record(run_dir, shipped_deps,
+                            fmt::format("recorded at install ({}): shipped before dependency records, taken as built on "
+                                        "the shipped runs its outputs name",
+                                        utc_timestamp()));
   return true;
 }
 
-std::vector<std::string> run_dependencies(const fs::path& run_dir) {
-  std::vector<std::string> out;
+std::vector<std::pair<std::string, std::string>> run_dependency_fields(const fs::path& run_dir) {
+  std::vector<std::pair<std::string, std::string>> out;
   if (!fs::is_directory(run_dir / "outputs")) return out;
   for (const auto& f : fs::directory_iterator(run_dir / "outputs")) {
     if (f.path().extension() != ".yaml") continue;
@@ -151,19 +168,38 @@ std::vector<std::string> run_dependencies(const fs::path& run_dir) {
     for (const auto& kv : n) {
       const std::string key = kv.first.as<std::string>();
       if (key.size() > 4 && key.compare(key.size() - 4, 4, "_run") == 0 && kv.second.IsScalar())
-        out.push_back(kv.second.as<std::string>());
+        out.emplace_back(key, kv.second.as<std::string>());
     }
   }
-  std::sort(out.begin(), out.end());
+  std::sort(out.begin(), out.end(), [](const auto& a, const auto& b) { return a.second < b.second; });
+  return out;
+}
+
+std::vector<std::string> run_dependencies(const fs::path& run_dir) {
+  std::vector<std::string> out;
+  for (const auto& kv : run_dependency_fields(run_dir)) out.push_back(kv.second);
   return out;
 }
 
 PretrainedEntry ship_run(const fs::path& run_dir, const fs::path& root, const std::string& config,
                          const std::vector<std::string>& overrides, const std::string& config_hash,
-                         const std::string& retrain) {
+                         const std::string& retrain, std::ostream* log) {
   if (!fs::exists(run_dir / "DONE") || !fs::exists(run_dir / "checkpoints" / "final.pt"))
     fail("'{}' is not a finished run (DONE or checkpoints/final.pt missing); finish it before shipping it",
          run_dir.string());
+  // The shipped set stays consistent: a run built on other weights than the shipped
+  // version of its dependency would be found stale (and retrained) after every install.
+  const auto record = read_dependency_record(run_dir);
+  if (record)
+    for (const auto& d : *record) {
+      const fs::path key(run_key(d.run));
+      auto shipped = find_pretrained(root, key.parent_path().string(), key.filename().string());
+      if (shipped && shipped->sha1 != d.sha1)
+        fail("ship {}: it was trained on {} {} (final.pt sha1 {}), but the shipped {} has sha1 {}; ship the {} it was "
+             "trained on first (`motionctl ship {}`), or retrain it on the shipped one",
+             run_dir.string(), d.what, d.run, d.sha1, key.string(), shipped->sha1, d.what,
+             d.config.empty() ? d.run : d.config);
+    }
   PretrainedEntry e;
   e.experiment = run_dir.parent_path().filename().string();
   e.name = run_dir.filename().string();
@@ -177,7 +213,7 @@ PretrainedEntry ship_run(const fs::path& run_dir, const fs::path& root, const st
   fs::remove_all(staging, ec);
   fs::create_directories(staging / "checkpoints");
   for (const char* f : {"config.yaml", "overrides.txt", "seed.txt", "summary.csv", "metrics.csv", "DONE",
-                        "health.md", "health.json"})
+                        "health.md", "health.json", kDependencyRecord})
     if (fs::exists(run_dir / f)) fs::copy_file(run_dir / f, staging / f);
   fs::copy_file(run_dir / "checkpoints" / "final.pt", staging / "checkpoints" / "final.pt");
   if (fs::exists(run_dir / "outputs")) fs::copy(run_dir / "outputs", staging / "outputs", fs::copy_options::recursive);
@@ -191,6 +227,27 @@ PretrainedEntry ship_run(const fs::path& run_dir, const fs::path& root, const st
   // this component (its config changed since): it is superseded, so its files go too, and
   // the manifest never ships two versions of one component.
   auto entries = read_pretrained_manifest(root);
+  // Shipped runs built on the version of this component that it replaces are now
+  // stale: an install would retrain them. Named, so they are retrained and shipped too.
+  std::string replaced_sha1;
+  for (const auto& x : entries)
+    if (x.experiment == e.experiment && x.name == e.name) replaced_sha1 = x.sha1;
+  const std::string e_key = e.experiment + "/" + e.name;
+  for (const auto& x : entries) {
+    if (x.experiment == e.experiment && x.name == e.name) continue;
+    bool stale = false;
+    if (auto rec = read_dependency_record(x.dir)) {
+      for (const auto& d : *rec) stale = stale || (run_key(d.run) == e_key && d.sha1 != e.sha1);
+    } else {
+      const auto named = run_dependencies(x.dir);
+      stale = !replaced_sha1.empty() && replaced_sha1 != e.sha1 &&
+              std::any_of(named.begin(), named.end(), [&](const std::string& n) { return run_key(n) == e_key; });
+    }
+    if (stale && log)
+      *log << fmt::format("warning: the shipped {}/{} was trained on another version of {}; an install would "
+                          "retrain it: retrain it (`{}`) and ship it\n",
+                          x.experiment, x.name, e_key, x.retrain);
+  }
   const auto superseded = [&](const PretrainedEntry& x) {
     return x.experiment == e.experiment &&
            (x.name == e.name || (x.config == e.config && x.overrides == e.overrides));

@@ -8,6 +8,7 @@
 #include <optional>
 #include <ostream>
 #include <string>
+#include <utility>
 #include <vector>
 
 namespace mc {
@@ -38,22 +39,30 @@ std::string file_sha1(const fs::path& file);
 
 // When `experiment/name` is shipped with the same config hash and `run_dir` does
 // not exist, copies the shipped run there (through a temporary sibling renamed
-// into place, after checking the checkpoint's SHA-1) and returns true. A shipped
-// run of another config (a named run whose config changed) is not installed.
-// `log` (may be null) gets one line.
+// into place, after checking the checkpoint's SHA-1) and returns true, with the
+// shipped runs it was trained on beside it (same runs root). A shipped run of
+// another config (a named run whose config changed) is not installed. One shipped
+// before runs recorded their dependencies (train/dependency_record.h) gets a record
+// naming the shipped runs its outputs name, when all of them are shipped.
+// `log` (may be null) gets one line per installed run.
 bool install_pretrained(const std::string& experiment, const std::string& name, const std::string& config_hash,
                         const fs::path& run_dir, std::ostream* log);
 
 // Run directories a finished run was trained on, as its outputs/*.yaml record them
-// (every top-level key ending in `_run`: base_run, tokenizer_run, tmd_run).
+// (every top-level key ending in `_run`: base_run, tokenizer_run, tmd_run), sorted.
 std::vector<std::string> run_dependencies(const fs::path& run_dir);
+// The same with each one's key (("base_run", "runs/prior/flow_tiny-...")).
+std::vector<std::pair<std::string, std::string>> run_dependency_fields(const fs::path& run_dir);
 
 // Copies the files a user of a finished run needs (config.yaml, overrides.txt,
-// seed.txt, summary.csv, metrics.csv, DONE, checkpoints/final.pt, outputs/, health.*)
-// into <root>/<experiment>/<name> and adds or replaces its manifest entry.
-// UserError when the run is not finished.
+// seed.txt, summary.csv, metrics.csv, DONE, dependencies.yaml, checkpoints/final.pt,
+// outputs/, health.*) into <root>/<experiment>/<name> and adds or replaces its
+// manifest entry. UserError when the run is not finished, or when its dependency
+// record names a shipped component with other weights (ship that one first). `log`
+// (may be null) gets a warning for each shipped run built on the version of this
+// component it replaces.
 PretrainedEntry ship_run(const fs::path& run_dir, const fs::path& root, const std::string& config,
                          const std::vector<std::string>& overrides, const std::string& config_hash,
-                         const std::string& retrain);
+                         const std::string& retrain, std::ostream* log = nullptr);
 
 }  // namespace mc

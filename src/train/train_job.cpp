@@ -127,7 +127,9 @@ TrainResult run_train(const std::string& requested, const std::vector<std::strin
   if (!job.run.force && writer)
     install_pretrained(job.run.experiment, dir_name, identity_hash(job),
                        fs::path(job.run.root) / job.run.experiment / dir_name, &std::cerr);
-  TrainResult r = train(job, overrides, name, loop);
+  TrainLoopOptions with_file = loop;
+  with_file.config_file = file;  // in messages: "retrain it with `motionctl train <file> ...`"
+  TrainResult r = train(job, overrides, name, with_file);
   auto& used = trained_runs_registry();
   const std::string dir = r.run_dir.string();
   if (std::find(used.begin(), used.end(), dir) == used.end()) used.push_back(dir);

@@ -16,11 +16,14 @@
 #include <sstream>
 #include <thread>
 
+#include <fmt/ranges.h>
+
 #include "core/resources.h"
 #include "core/atomic_file.h"
 #include "core/error.h"
 #include "core/interrupt.h"
 #include "train/dependencies.h"
+#include "train/dependency_record.h"
 #include "train/distributed.h"
 
 namespace mc {
@@ -388,6 +391,37 @@ TrainResult train(TrainJobConfig& job, const std::vector<std::string>& overrides
     if (dp) dp->announce_start("finished");
     return result;
   };
+  auto retrain_command = [&] {
+    std::string cmd = "motionctl train " + (loop.config_file.empty() ? "<its training config>" : loop.config_file);
+    for (const auto& o : overrides) cmd += " " + o;
+    return cmd + " run.force=true";
+  };
+  // Why the run is trained again from scratch (a stale finished or half-trained
+  // run); logged once its directory is cleared, so its new log.txt says it too.
+  std::string restart_reason;
+  // Whether the finished run `run` may be reused with the components its model is
+  // built on resolved as `now` (train/dependency_record.h). A legacy run (no record)
+  // that nothing shows stale is taken as built on them, with one warning, and the
+  // record is written, so from then on a retrained dependency is noticed.
+  auto reusable = [&](RunDir& run, const std::vector<ResolvedDependency>& now) {
+    const DependencyCheck c = check_dependencies(run.path(), now);
+    if (c.state == DependencyCheck::State::stale) {
+      restart_reason =
+          fmt::format("{} was trained on {}: retraining", run.path().string(), fmt::join(c.reasons, "; "));
+      return false;
+    }
+    if (c.state == DependencyCheck::State::unrecorded) {
+      write_dependency_record(run.path(), now,
+                              fmt::format("adopted {}: the run predates dependency records; taken as built on the "
+                                          "components its config resolved to when it was adopted",
+                                          utc_timestamp()));
+      run.log().info(fmt::format("warning: {} has no record of the components it was built on (trained before "
+                                 "motionctl kept one): taking it as built on today's {}; if one of them was retrained "
+                                 "since, retrain it with `{}`",
+                                 run.path().string(), describe_dependencies(now), retrain_command()));
+    }
+    return true;
+  };
 
   // Everything the loop works on; rank 0 builds it first (it may train components
   // the model needs, and claims the run directory), the other ranks once rank 0
@@ -400,6 +434,7 @@ TrainResult train(TrainJobConfig& job, const std::vector<std::string>& overrides
   std::optional<torch::optim::AdamW> opt;
   std::vector<torch::Tensor> ema;
   std::optional<EpochSampler> sampler;
+  std::vector<ResolvedDependency> deps;  // the components the model is built on, as build() resolved them
   auto build = [&] {
     // Everything that can refuse the job is checked before the run directory is
     // claimed, so a failed start leaves no directory (an explicit run.name stays free).
@@ -409,7 +444,7 @@ TrainResult train(TrainJobConfig& job, const std::vector<std::string>& overrides
     TrainContext ctx{data, device, &job, job.data.window, job.data.trim_padding, job.optim.ema_decay};
     // The components the model is built on (a frozen base, a tokenizer, a text
     // encoder) are trained here, by the job, if missing; the model only loads them.
-    resolve_dependencies(job.model);
+    deps = resolve_dependencies(job.model);
     trainable = make_trainable(job.model, ctx);
     // A component trained on demand for the model (rank 0) sets its own thread count.
     if (dp) torch::set_num_threads(threads);
@@ -434,19 +469,50 @@ TrainResult train(TrainJobConfig& job, const std::vector<std::string>& overrides
   std::string start_state;  // rank 0's state at the start, for the other ranks
   if (writer) {
     try {
-      // A finished run is a no-op: answered without loading data or building the model.
+      // A finished run is a no-op, answered without loading data or building the
+      // model, while the components it was built on are still the ones its config
+      // resolves to: resolving them first trains what is missing or stale below it
+      // (transitively: a retrained tokenizer makes its TMD prior stale, which makes
+      // the TMD's adapters stale). A stale run stays locked (`held`) until it is
+      // opened again to be trained from scratch, as with run.force=true.
+      RunConfig open_as = job.run;
+      std::shared_ptr<RunLock> held;
       if (!job.run.force && fs::exists(RunDir::path_of(job.run, default_name) / "DONE")) {
         RunDir run = RunDir::open(job.run, yaml, overrides, default_name, same);
-        if (run.finished()) return finished_result(run);
+        if (run.finished()) {
+          if (reusable(run, resolve_dependencies(job.model, nullptr))) return finished_result(run);
+          held = RunLock::acquire(run.path());
+          open_as.force = true;
+        }
       }
       build();
-      run_holder.emplace(RunDir::open(job.run, yaml, overrides, default_name, same));
+      run_holder.emplace(RunDir::open(open_as, yaml, overrides, default_name, same));
+      // Finished by another process meanwhile (it resolved the same components).
+      if (run_holder->finished()) return finished_result(*run_holder);
+      last = run_holder->checkpoints() / "last.pt";
+      if (const auto c = fs::exists(last) ? check_dependencies(run_holder->path(), deps) : DependencyCheck{};
+          c.state == DependencyCheck::State::stale) {
+        // Resuming on other components than the run started on would mix two trainings.
+        restart_reason = fmt::format("{} was being trained on {}: starting it again from scratch",
+                                     run_holder->path().string(), fmt::join(c.reasons, "; "));
+        held = RunLock::acquire(run_holder->path());
+        run_holder.reset();
+        open_as.force = true;
+        run_holder.emplace(RunDir::open(open_as, yaml, overrides, default_name, same));
+      }
+      held.reset();
       RunDir& run = *run_holder;
       result.run_dir = run.path();
-      if (run.finished()) return finished_result(run);  // finished by another process meanwhile
+      if (!restart_reason.empty()) run.log().info(restart_reason);
+      if (!fs::exists(last))
+        write_dependency_record(run.path(), deps);
+      else if (!read_dependency_record(run.path()))
+        write_dependency_record(run.path(), deps,
+                                fmt::format("recorded when resumed at {}: the run was started before dependency "
+                                            "records",
+                                            utc_timestamp()));
       interrupt_scope.emplace();
       metrics.emplace(run.metrics_path());
-      last = run.checkpoints() / "last.pt";
       const std::string ranks = dp ? fmt::format(", {} data-parallel processes", world) : "";
       if (fs::exists(last)) {
         bool legacy = false;

@@ -140,6 +140,9 @@ struct TrainLoopOptions {
   // step's scalars are summed over the ranks, and rank 0 alone writes the run
   // directory (lock, logs, metrics, checkpoints, final weights). Null: one process.
   DataParallel* data_parallel = nullptr;
+  // The training config the job was loaded from (run_train sets it): messages give
+  // the command that retrains the run. Empty: "<its training config>".
+  std::string config_file;
 };
 
 // Trains (or resumes, or skips) the run described by `job`. `default_name` names
@@ -148,7 +151,10 @@ struct TrainLoopOptions {
 // checked. A non-finite loss or weight stops it with a UserError naming the knob
 // to change, before anything of the diverged steps is written. SIGINT/SIGTERM
 // write a checkpoint at the step reached and throw Interrupted (data-parallel:
-// every rank stops at the same step).
+// every rank stops at the same step). A finished run is skipped only while the
+// components its model is built on are the ones it was trained on; otherwise (and
+// for a run being resumed) it is trained again from scratch in its own directory
+// (train/dependency_record.h).
 TrainResult train(TrainJobConfig& job, const std::vector<std::string>& overrides, const std::string& default_name,
                   const TrainLoopOptions& loop = {});
 

@@ -1,16 +1,22 @@
 // Shipped components (train/pretrained.*): ship a finished run, install it in place
-// of training, refuse a checkpoint whose bytes changed; every committed entry of
-// pretrained/manifest.yaml matches its config's hash and loads.
+// of training, refuse a checkpoint whose bytes changed; ship carries the dependency
+// record and refuses an inconsistent set; every committed entry of
+// pretrained/manifest.yaml matches its config's hash, loads, and names today the
+// shipped runs it was built on.
 #include <catch2/catch.hpp>
 
+#include <algorithm>
 #include <cstdlib>
+#include <sstream>
 
 #include "core/atomic_file.h"
 #include "core/error.h"
+#include "core/trained_runs.h"
 #include "eval/t2m_evaluator.h"
 #include "models/vq_tokenizer.h"
 #include "samplers/flow_sampler.h"
 #include "test_util.h"
+#include "train/dependency_record.h"
 #include "train/pretrained.h"
 #include "train/train_job.h"
 
@@ -120,6 +126,76 @@ TEST_CASE("pretrained: installing a run installs the shipped runs it was trained
   REQUIRE(install_pretrained("prior", "flow_controlnet_b-bbbbbbbbbbbb", "bbbbbbbbbbbb", target, nullptr));
   CHECK(fs::exists(target / "DONE"));
   CHECK(fs::exists(base_target / "DONE"));  // the base came with it
+  // Shipped before dependency records: the install records the shipped base it names.
+  auto rec = read_dependency_record(target);
+  REQUIRE(rec.has_value());
+  REQUIRE(rec->size() == 1);
+  CHECK((*rec)[0].what == "base_run");
+  CHECK(fs::path((*rec)[0].run) == base_target);
+  CHECK((*rec)[0].sha1 == file_sha1(base / "checkpoints" / "final.pt"));
+  CHECK(check_dependencies(target, {{"prior", base_target.string(), "", {}, weights_sha1(base_target)}}).state ==
+        DependencyCheck::State::fresh);
+}
+
+TEST_CASE("pretrained: ship carries the dependency record and keeps the shipped set consistent", "[pretrained]") {
+  TempDir tmp("pretrained_record");
+  const fs::path root = tmp.path / "shipped";
+  const fs::path base = tmp.path / "runs" / "prior" / "flow_b-aaaaaaaaaaaa";
+  const fs::path cnet = tmp.path / "runs" / "prior" / "flow_controlnet_b-bbbbbbbbbbbb";
+  fake_finished_run(base);
+  fake_finished_run(cnet);
+  ship_run(base, root, "configs/prior/flow_b.yaml", {}, "aaaaaaaaaaaa", "retrain b");
+  // Built on other weights than the shipped base: refused, naming both fingerprints.
+  write_dependency_record(cnet, {{"prior", base.string(), "configs/prior/flow_b.yaml", {}, std::string(40, 'f')}});
+  expect_user_error(
+      [&] { ship_run(cnet, root, "configs/prior/flow_controlnet_b.yaml", {}, "bbbbbbbbbbbb", "retrain c"); },
+      {"ship", std::string(40, 'f'), file_sha1(base / "checkpoints" / "final.pt"), "prior/flow_b-aaaaaaaaaaaa"});
+  CHECK(read_pretrained_manifest(root).size() == 1);
+  // Built on the shipped base: shipped with its record.
+  write_dependency_record(cnet, {{"prior", base.string(), "configs/prior/flow_b.yaml", {}, weights_sha1(base)}});
+  auto e = ship_run(cnet, root, "configs/prior/flow_controlnet_b.yaml", {}, "bbbbbbbbbbbb", "retrain c");
+  REQUIRE(read_dependency_record(e.dir).has_value());
+  CHECK(read_dependency_record(e.dir)->at(0).sha1 == weights_sha1(base));
+  // The base retrained and shipped again: the shipped ControlNet built on the old one is named.
+  write_file_atomic(base / "checkpoints" / "final.pt", "retrained weights");
+  std::ostringstream log;
+  ship_run(base, root, "configs/prior/flow_b.yaml", {}, "aaaaaaaaaaaa", "retrain b", &log);
+  CHECK(log.str().find("prior/flow_controlnet_b-bbbbbbbbbbbb was trained on another version of "
+                       "prior/flow_b-aaaaaaaaaaaa") != std::string::npos);
+  CHECK(log.str().find("retrain c") != std::string::npos);
+}
+
+TEST_CASE("pretrained: the runs each shipped component's config names today are the shipped runs it was built on",
+          "[pretrained]") {
+  // So installing it (and resolving its dependencies) finds it fresh: `make demo` and
+  // the tests retrain nothing that is shipped.
+  struct Named : DependencyVisitor {
+    std::vector<std::string> keys;
+    void operator()(const char*, std::string& run_dir, std::string& config,
+                    std::vector<std::string>& overrides) override {
+      if (!run_dir.empty()) keys.push_back(run_key(run_dir));
+      else if (!config.empty()) keys.push_back(run_key(run_dir_of(config, overrides).string()));
+    }
+  };
+  const fs::path root = fs::path(MOTIONCTL_SOURCE_DIR) / "pretrained";
+  int with_dependencies = 0;
+  for (const auto& e : read_pretrained_manifest(root)) {
+    INFO(e.name);
+    auto job = load_job<TrainJobConfig>(std::string(MOTIONCTL_SOURCE_DIR) + "/" + e.config, e.overrides);
+    Named n;
+    for_each_dependency(job, n);
+    std::vector<std::string> shipped;
+    if (auto rec = read_dependency_record(e.dir)) {
+      for (const auto& d : *rec) shipped.push_back(run_key(d.run));
+    } else {
+      for (const auto& d : run_dependencies(e.dir)) shipped.push_back(run_key(d));
+    }
+    std::sort(n.keys.begin(), n.keys.end());
+    std::sort(shipped.begin(), shipped.end());
+    CHECK(n.keys == shipped);
+    with_dependencies += !n.keys.empty();
+  }
+  CHECK(with_dependencies >= 7);  // ControlNets, token priors, adapters, the standard prior's text encoder
 }
 
 TEST_CASE("pretrained: every shipped component matches its config's hash, loads, and ships what it needs",
