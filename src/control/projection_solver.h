@@ -1,6 +1,9 @@
 // The ProjFlow correction (eq. (7)): x' = x_hat + R^-1 A^T (A R^-1 A^T + Sigma)^-1 (y - A x_hat),
 // solved per group of coupled rows without forming anything of size d x d, with
-// the factorisations cached while A and Sigma stay the same.
+// the factorisations cached while A and Sigma stay the same. With inequality rows
+// (G x <= h, issue 20) it is the R-metric projection onto the equality set
+// intersected with the half-spaces: an exact QP per coupled group
+// (control/active_set_qp.h) started from the equality projection.
 #pragma once
 #include <Eigen/Dense>
 #include <cstdint>
@@ -41,6 +44,17 @@ namespace mc {
 //
 // Batches. project() works on the transpose (samples x d), where one coordinate
 // of all samples is contiguous, so every group's update is a dense GEMM.
+//
+// Inequalities. Rows of G join the union-find like rows of A; a group with
+// inequality rows keeps, besides the equality gain, M = C R^-1 C^T + Sigma over
+// all its rows (C = [A_c; G_c]), W = R^-1 C^T and the Cholesky factor of M's
+// equality block. A projection first applies the equality update to every column
+// (one GEMM, as without inequalities), reads the inequality values off it (one
+// more small GEMM) and runs the dual active-set QP only for the columns where a
+// row is violated or a warm start names active rows. The QP is exact: hard
+// equalities hold to solver precision, hard inequalities to ~1e-11 of their
+// residual, and the answer does not depend on the warm start. A hard set that no
+// motion meets is a UserError naming the items.
 class ProjectionSolver {
  public:
   explicit ProjectionSolver(KinematicMetric metric);
@@ -54,9 +68,17 @@ class ProjectionSolver {
   void update_variance(const Eigen::VectorXd& variance);
   void update_targets(const Eigen::VectorXd& y);
 
-  // eq. (7)-(8) for every column of x_hat (d x S).
-  Eigen::MatrixXd project(const Eigen::MatrixXd& x_hat) const;
-  void project_in_place(Eigen::Ref<Eigen::MatrixXd> x) const;
+  // Active inequality rows (global rows of G) per sample column, carried from one
+  // projection of a column to the next (ProjFlow: from one sampling step to the
+  // next) to warm-start the QP. Empty: cold start.
+  struct ActiveSets {
+    std::vector<std::vector<int>> columns;
+  };
+
+  // eq. (7)-(8) for every column of x_hat (d x S); with inequality rows, the QP.
+  // `warm` (optional) is read as the start and overwritten with the final active sets.
+  Eigen::MatrixXd project(const Eigen::MatrixXd& x_hat, ActiveSets* warm = nullptr) const;
+  void project_in_place(Eigen::Ref<Eigen::MatrixXd> x, ActiveSets* warm = nullptr) const;
 
   const KinematicMetric& metric() const { return metric_; }
   const LinearObservation& observation() const { return obs_; }
@@ -69,26 +91,35 @@ class ProjectionSolver {
   int distinct_factors() const;  // factorisations the current groups use
   int largest_group() const;
   int jittered_groups() const;
+  int inequality_groups() const;            // groups that hold inequality rows
+  int64_t qp_solves() const { return qp_solves_; }          // (group, column) QPs run so far
+  int64_t qp_iterations() const { return qp_iterations_; }  // rows added or dropped in them
 
  private:
   // What a group's system depends on: its rows relative to its blocks.
   struct Factor {
     std::string key;         // Group::structure + the rows' variances
-    Eigen::MatrixXd m0;      // A_c R^-1 A_c^T (lower triangle is what LLT reads)
-    Eigen::MatrixXd w;       // W_c = R^-1 A_c^T on the touched blocks: (J * blocks) x m_c
-    Eigen::MatrixXd gain_t;  // G_c^T = M_c^-1 W_c^T: m_c x (J * blocks)
+    Eigen::MatrixXd m0;      // C_c R^-1 C_c^T over all rows, equalities first (lower triangle is what LLT reads)
+    Eigen::MatrixXd w;       // W_c = R^-1 C_c^T on the touched blocks: (J * blocks) x m_c
+    Eigen::MatrixXd gain_t;  // equality rows: M_EE^-1 W_E^T: m_E x (J * blocks)
     bool jittered = false;
+    // Groups with inequality rows only.
+    Eigen::MatrixXd m;           // M = m0 + Sigma over all rows
+    Eigen::MatrixXd l_eq;        // Cholesky factor (lower) of M_EE as factorised (jitter included)
+    Eigen::MatrixXd eq_to_ineq;  // M_EE^-1 M_EI: inequality values after the equality update, plus -r_I
   };
   struct Group {
-    std::vector<int> rows;    // global row indices
+    std::vector<int> rows;    // global row indices of A
+    std::vector<int> g_rows;  // global row indices of G (empty: no inequalities)
     std::vector<int> blocks;  // (frame, axis) blocks touched: frame * 3 + axis
-    std::string structure;    // key of A_c relative to the blocks (no variances)
+    std::string structure;    // key of C_c relative to the blocks (no variances)
     int factor = -1;          // index into factors_
   };
   void build_structure();
   int factor_for(const Group& g);  // finds or computes the factor of g's structure + variances
-  void factorise(Factor& f, const std::vector<double>& variance);
+  void factorise(Factor& f, const std::vector<double>& variance, int equalities);
   bool same_operator(const LinearObservation& obs) const;
+  [[noreturn]] void fail_infeasible(const Group& g, const std::vector<int>& local_rows) const;
 
   KinematicMetric metric_;
   LinearObservation obs_;
@@ -97,6 +128,7 @@ class ProjectionSolver {
   std::vector<Factor> factors_;
   std::unordered_map<std::string, int> factor_index_;  // structure + variances -> factor
   int64_t factorizations_ = 0, structure_builds_ = 0;
+  mutable int64_t qp_solves_ = 0, qp_iterations_ = 0;
 };
 
 // Dense reference for tests: forms R and A as dense matrices and solves eq. (7)

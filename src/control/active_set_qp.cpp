@@ -1,0 +1,192 @@
+// Goldfarb-Idnani dual active-set method in range space, with an updated Cholesky
+// factor of the active rows' M block (see active_set_qp.h).
+#include "control/active_set_qp.h"
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <stdexcept>
+
+namespace mc {
+
+void ActiveCholesky::reset(const Eigen::MatrixXd& l, int capacity) {
+  k_ = static_cast<int>(l.rows());
+  l_ = Eigen::MatrixXd::Zero(std::max(capacity, k_), std::max(capacity, k_));
+  if (k_ > 0) l_.topLeftCorner(k_, k_) = l.triangularView<Eigen::Lower>();
+}
+
+Eigen::VectorXd ActiveCholesky::forward(const Eigen::VectorXd& v) const {
+  if (k_ == 0) return Eigen::VectorXd(0);
+  return l_.topLeftCorner(k_, k_).triangularView<Eigen::Lower>().solve(v);
+}
+
+void ActiveCholesky::solve_in_place(Eigen::Ref<Eigen::VectorXd> b) const {
+  if (k_ == 0) return;
+  auto L = l_.topLeftCorner(k_, k_);
+  L.triangularView<Eigen::Lower>().solveInPlace(b);
+  L.transpose().triangularView<Eigen::Upper>().solveInPlace(b);
+}
+
+void ActiveCholesky::append(const Eigen::VectorXd& w, double s) {
+  if (k_ >= l_.rows()) throw std::logic_error("ActiveCholesky: capacity exceeded");
+  if (k_ > 0) l_.row(k_).head(k_) = w.transpose();
+  l_(k_, k_) = std::sqrt(s);
+  ++k_;
+}
+
+void ActiveCholesky::remove(int q) {
+  if (q < 0 || q >= k_) throw std::logic_error("ActiveCholesky: no such active row");
+  // Without row q, the trailing block must absorb its column: L33' L33'^T = L33 L33^T + l l^T.
+  const int n = k_ - q - 1;
+  Eigen::VectorXd x = l_.col(q).segment(q + 1, n);
+  for (int j = 0; j < n; ++j) {
+    const int jj = q + 1 + j;
+    const double d = l_(jj, jj);
+    const double r = std::hypot(d, x[j]);
+    const double c = r / d, s = x[j] / d;
+    l_(jj, jj) = r;
+    for (int i = j + 1; i < n; ++i) {
+      const int ii = q + 1 + i;
+      l_(ii, jj) = (l_(ii, jj) + s * x[i]) / c;
+      x[i] = c * x[i] - s * l_(ii, jj);
+    }
+  }
+  for (int i = q + 1; i < k_; ++i) {
+    for (int j = 0; j < q; ++j) l_(i - 1, j) = l_(i, j);
+    for (int j = q + 1; j <= i; ++j) l_(i - 1, j - 1) = l_(i, j);
+  }
+  l_.row(k_ - 1).setZero();
+  l_.col(k_ - 1).setZero();
+  --k_;
+}
+
+namespace {
+
+constexpr double kDependent = 1e-10;  // Schur complement / M_pp below this: the row depends on the active ones
+
+}  // namespace
+
+DualQpResult solve_dual_qp(const Eigen::MatrixXd& M, const Eigen::VectorXd& r, int equalities,
+                           const Eigen::MatrixXd& l_eq, const Eigen::VectorXd& lambda_eq,
+                           const std::vector<int>& warm) {
+  const int m = static_cast<int>(M.rows()), mE = equalities;
+  if (M.cols() != m || r.size() != m || mE < 0 || mE > m || l_eq.rows() != mE || lambda_eq.size() != mE)
+    throw std::invalid_argument("solve_dual_qp: inconsistent sizes");
+  DualQpResult out;
+  Eigen::VectorXd& lambda = out.lambda;
+  lambda = Eigen::VectorXd::Zero(m);
+  lambda.head(mE) = lambda_eq;
+  std::vector<int> act(mE);  // active rows in the factor's order: the equalities, then inequalities
+  for (int i = 0; i < mE; ++i) act[i] = i;
+  std::vector<char> is_active(m, 0);
+  std::fill(is_active.begin(), is_active.begin() + mE, 1);
+  ActiveCholesky chol;
+  chol.reset(l_eq, m);
+  auto column = [&](int p) {  // M_{A, p}
+    Eigen::VectorXd v(act.size());
+    for (size_t k = 0; k < act.size(); ++k) v[static_cast<Eigen::Index>(k)] = M(act[k], p);
+    return v;
+  };
+  auto remove_position = [&](size_t q) {
+    lambda[act[q]] = 0.0;
+    is_active[act[q]] = 0;
+    chol.remove(static_cast<int>(q));
+    act.erase(act.begin() + static_cast<std::ptrdiff_t>(q));
+    ++out.iterations;
+  };
+
+  // Warm start: the previous active rows, kept while independent and correctly signed.
+  if (!warm.empty()) {
+    for (int i : warm) {
+      if (i < mE || i >= m || is_active[i]) continue;
+      Eigen::VectorXd w = chol.forward(column(i));
+      const double s = M(i, i) - w.squaredNorm();
+      if (!(s > kDependent * M(i, i))) continue;
+      chol.append(w, s);
+      act.push_back(i);
+      is_active[i] = 1;
+    }
+    while (true) {
+      Eigen::VectorXd b(act.size());
+      for (size_t k = 0; k < act.size(); ++k) b[static_cast<Eigen::Index>(k)] = r[act[k]];
+      chol.solve_in_place(b);
+      for (size_t k = 0; k < act.size(); ++k) lambda[act[k]] = b[static_cast<Eigen::Index>(k)];
+      // An active inequality must push (lambda <= 0); drop the worst offender and re-solve.
+      size_t worst = act.size();
+      double worst_value = 0.0;
+      for (size_t k = static_cast<size_t>(mE); k < act.size(); ++k)
+        if (lambda[act[k]] > worst_value) worst_value = lambda[act[k]], worst = k;
+      if (worst == act.size()) break;
+      remove_position(worst);
+    }
+  }
+
+  Eigen::VectorXd m_lambda = M * lambda;  // kept current: c = M lambda - r
+  const int max_iterations = 10 * (m + 10);
+  while (true) {
+    // The most violated inactive inequality, measured in the row's own R-norm.
+    int p = -1;
+    double best = 0.0;
+    for (int i = mE; i < m; ++i) {
+      if (is_active[i]) continue;
+      const double c = m_lambda[i] - r[i];
+      if (c <= inequality_tolerance(r[i])) continue;
+      const double score = c / std::sqrt(std::max(M(i, i), 1e-300));
+      if (score > best) best = score, p = i;
+    }
+    if (p < 0) break;
+    // Add p, dropping active inequalities that would change sign on the way.
+    while (true) {
+      if (++out.iterations > max_iterations)
+        throw std::runtime_error("solve_dual_qp: no convergence (cycling active set); please report this input");
+      const Eigen::VectorXd v = column(p);
+      const Eigen::VectorXd w = chol.forward(v);
+      Eigen::VectorXd z = v;
+      chol.solve_in_place(z);  // z = M_AA^-1 M_Ap
+      const double s = M(p, p) - w.squaredNorm();
+      // lambda_A(t) = lambda_A + t z, lambda_p(t) = lambda_p - t; an active inequality blocks at lambda = 0.
+      double t2 = std::numeric_limits<double>::infinity();
+      size_t block = act.size();
+      const double z_tol = 1e-12 * std::max(1.0, z.size() ? z.cwiseAbs().maxCoeff() : 0.0);
+      for (size_t k = static_cast<size_t>(mE); k < act.size(); ++k) {
+        const double zk = z[static_cast<Eigen::Index>(k)];
+        if (zk <= z_tol) continue;
+        const double ratio = -lambda[act[k]] / zk;
+        if (ratio < t2) t2 = ratio, block = k;
+      }
+      const double c_p = m_lambda[p] - r[p];
+      const bool dependent = !(s > kDependent * M(p, p));
+      if (dependent && block == act.size()) {
+        // p is a combination of active rows, none of which may give way: no point meets them all.
+        out.feasible = false;
+        out.conflict.push_back(p);
+        const double zmax = z.size() ? z.cwiseAbs().maxCoeff() : 0.0;
+        for (size_t k = 0; k < act.size(); ++k)
+          if (std::abs(z[static_cast<Eigen::Index>(k)]) > 1e-9 * std::max(zmax, 1e-300)) out.conflict.push_back(act[k]);
+        std::sort(out.conflict.begin(), out.conflict.end());
+        return out;
+      }
+      const double t1 = dependent ? std::numeric_limits<double>::infinity() : std::max(0.0, c_p / s);
+      const double t = std::min(t1, t2);
+      for (size_t k = 0; k < act.size(); ++k) lambda[act[k]] += t * z[static_cast<Eigen::Index>(k)];
+      lambda[p] -= t;
+      // M lambda changes by M_{:,A} (t z) - t M_{:,p}.
+      for (size_t k = 0; k < act.size(); ++k) m_lambda.noalias() += (t * z[static_cast<Eigen::Index>(k)]) * M.col(act[k]);
+      m_lambda.noalias() -= t * M.col(p);
+      if (t1 <= t2) {
+        chol.append(w, s);
+        act.push_back(p);
+        is_active[p] = 1;
+        ++out.iterations;
+        break;
+      }
+      remove_position(block);
+      m_lambda = M * lambda;  // refresh: the blocking multiplier was set to exactly 0
+    }
+  }
+  for (size_t k = static_cast<size_t>(mE); k < act.size(); ++k) out.active.push_back(act[k]);
+  std::sort(out.active.begin(), out.active.end());
+  return out;
+}
+
+}  // namespace mc
