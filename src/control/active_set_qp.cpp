@@ -11,7 +11,9 @@ namespace mc {
 
 void ActiveCholesky::reset(const Eigen::MatrixXd& l, int capacity) {
   k_ = static_cast<int>(l.rows());
-  l_ = Eigen::MatrixXd::Zero(std::max(capacity, k_), std::max(capacity, k_));
+  capacity_ = std::max(capacity, k_);
+  const int n = std::min(capacity_, std::max(k_ + 8, 2 * k_));
+  l_ = Eigen::MatrixXd::Zero(n, n);
   if (k_ > 0) l_.topLeftCorner(k_, k_) = l.triangularView<Eigen::Lower>();
 }
 
@@ -28,7 +30,13 @@ void ActiveCholesky::solve_in_place(Eigen::Ref<Eigen::VectorXd> b) const {
 }
 
 void ActiveCholesky::append(const Eigen::VectorXd& w, double s) {
-  if (k_ >= l_.rows()) throw std::logic_error("ActiveCholesky: capacity exceeded");
+  if (k_ >= capacity_) throw std::logic_error("ActiveCholesky: capacity exceeded");
+  if (k_ >= l_.rows()) {  // grow, keeping the factor (the rest of the storage stays zero)
+    const int n = std::min(capacity_, std::max(k_ + 8, 2 * k_));
+    Eigen::MatrixXd grown = Eigen::MatrixXd::Zero(n, n);
+    grown.topLeftCorner(k_, k_) = l_.topLeftCorner(k_, k_);
+    l_.swap(grown);
+  }
   if (k_ > 0) l_.row(k_).head(k_) = w.transpose();
   l_(k_, k_) = std::sqrt(s);
   ++k_;
@@ -68,10 +76,12 @@ constexpr double kDependent = 1e-10;  // Schur complement / M_pp below this: the
 
 DualQpResult solve_dual_qp(const Eigen::MatrixXd& M, const Eigen::VectorXd& r, int equalities,
                            const Eigen::MatrixXd& l_eq, const Eigen::VectorXd& lambda_eq,
-                           const std::vector<int>& warm) {
+                           const std::vector<int>& warm, const Eigen::VectorXd& scale_in) {
   const int m = static_cast<int>(M.rows()), mE = equalities;
-  if (M.cols() != m || r.size() != m || mE < 0 || mE > m || l_eq.rows() != mE || lambda_eq.size() != mE)
+  if (M.cols() != m || r.size() != m || mE < 0 || mE > m || l_eq.rows() != mE || lambda_eq.size() != mE ||
+      (scale_in.size() != 0 && scale_in.size() != m))
     throw std::invalid_argument("solve_dual_qp: inconsistent sizes");
+  const Eigen::VectorXd scale = scale_in.size() ? scale_in : Eigen::VectorXd(M.diagonal());
   DualQpResult out;
   Eigen::VectorXd& lambda = out.lambda;
   lambda = Eigen::VectorXd::Zero(m);
@@ -101,7 +111,7 @@ DualQpResult solve_dual_qp(const Eigen::MatrixXd& M, const Eigen::VectorXd& r, i
       if (i < mE || i >= m || is_active[i]) continue;
       Eigen::VectorXd w = chol.forward(column(i));
       const double s = M(i, i) - w.squaredNorm();
-      if (!(s > kDependent * M(i, i))) continue;
+      if (!(s > kDependent * scale[i])) continue;
       chol.append(w, s);
       act.push_back(i);
       is_active[i] = 1;
@@ -155,7 +165,7 @@ DualQpResult solve_dual_qp(const Eigen::MatrixXd& M, const Eigen::VectorXd& r, i
         if (ratio < t2) t2 = ratio, block = k;
       }
       const double c_p = m_lambda[p] - r[p];
-      const bool dependent = !(s > kDependent * M(p, p));
+      const bool dependent = !(s > kDependent * scale[p]);
       if (dependent && block == act.size()) {
         // p is a combination of active rows, none of which may give way: no point meets them all.
         out.feasible = false;
@@ -180,8 +190,9 @@ DualQpResult solve_dual_qp(const Eigen::MatrixXd& M, const Eigen::VectorXd& r, i
         ++out.iterations;
         break;
       }
+      // The blocking multiplier is (up to rounding) 0 after the step; set it exactly.
+      m_lambda.noalias() -= lambda[act[block]] * M.col(act[block]);
       remove_position(block);
-      m_lambda = M * lambda;  // refresh: the blocking multiplier was set to exactly 0
     }
   }
   for (size_t k = static_cast<size_t>(mE); k < act.size(); ++k) out.active.push_back(act[k]);

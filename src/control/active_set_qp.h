@@ -1,16 +1,18 @@
 // The inequality part of the ProjFlow projection (issue 20, beyond both papers): the
-// R-metric projection onto {A x = y} ∩ {G x <= h} for one group of coupled rows,
-// solved exactly in range space by the dual active-set method of Goldfarb and
-// Idnani (Math. Programming 27, 1983), warm-startable from a previous active set.
+// R-metric projection onto {A x = y} ∩ {G x <= h}, solved exactly in range space by
+// the dual active-set method of Goldfarb and Idnani (Math. Programming 27, 1983),
+// warm-startable from a previous active set.
 //
-// Range space. With C = [A_c; G_c] the group's rows (equalities first), W = R^-1 C^T
-// and M = C R^-1 C^T + Sigma, every candidate solution is x = x_hat + W lambda, and
-// row i's value is c_i = (M lambda)_i - r_i with r = b - C x_hat (b = [y; h]): c_i = 0
-// for an active row, c_i <= 0 for a feasible inequality. An active inequality's
-// multiplier has lambda_i <= 0 (it pushes x back into its half-space). A soft row
-// (Sigma_ii > 0) is the same row of an augmented problem with a slack whose penalty
-// is 1 / Sigma_ii, so one solver covers hard and soft rows (docs/constraints.md).
-// Nothing of size d is touched here: only M (m x m) and r.
+// Range space. For rows C (equalities first, then inequalities) with W = R^-1 C^T and
+// M = C R^-1 C^T + Sigma, every candidate is x = x_hat + W lambda and row i's value is
+// c_i = (M lambda)_i - r_i with r = b - C x_hat: c_i = 0 for an active row, c_i <= 0 for
+// a feasible inequality; an active inequality's multiplier has lambda_i <= 0 (it
+// pushes x back into its half-space). ProjectionSolver calls it with the inequality
+// rows alone, after the equality projection: then R^-1 is replaced by that
+// projection's posterior covariance P and M is G P G^T + Sigma (a Schur complement),
+// which is the same problem. A soft row (Sigma_ii > 0) is the same row of an
+// augmented problem with a slack whose penalty is 1 / Sigma_ii, so one method covers
+// hard and soft rows (docs/constraints.md). Nothing of size d is touched here.
 #pragma once
 #include <Eigen/Dense>
 #include <vector>
@@ -22,7 +24,8 @@ namespace mc {
 // block, O(k^2)) instead of refactorised.
 class ActiveCholesky {
  public:
-  // Starts from the factor `l` (lower, k x k) of the first k active rows; room for `capacity`.
+  // Starts from the factor `l` (lower, k x k) of the first k active rows; at most
+  // `capacity` rows ever (storage grows on demand: most solves activate a few rows).
   void reset(const Eigen::MatrixXd& l, int capacity);
   int size() const { return k_; }
   // w = L^-1 v for the active rows (v has size()).
@@ -36,7 +39,7 @@ class ActiveCholesky {
 
  private:
   Eigen::MatrixXd l_;
-  int k_ = 0;
+  int k_ = 0, capacity_ = 0;
 };
 
 struct DualQpResult {
@@ -57,9 +60,12 @@ struct DualQpResult {
 // cold start's (up to rounding). Infeasible sets (a violated hard row that is a
 // combination of active rows none of which may give way) come back with
 // feasible = false and the rows involved.
+// `scale` (empty: M's diagonal) is each row's size before conditioning on the rest,
+// e.g. g R^-1 g^T + variance when M is a Schur complement: a row depends on the
+// active ones when its remaining variance falls below 1e-10 of that.
 DualQpResult solve_dual_qp(const Eigen::MatrixXd& M, const Eigen::VectorXd& r, int equalities,
                            const Eigen::MatrixXd& l_eq, const Eigen::VectorXd& lambda_eq,
-                           const std::vector<int>& warm = {});
+                           const std::vector<int>& warm = {}, const Eigen::VectorXd& scale = Eigen::VectorXd());
 
 // Tolerance on c_i for "violated": relative to the row's residual scale.
 inline double inequality_tolerance(double r) { return 1e-11 * (1.0 + std::abs(r)); }

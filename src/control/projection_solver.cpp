@@ -1,11 +1,13 @@
-// Structured solver for the ProjFlow projection (eq. (7)) plus its dense reference.
+// Structured solver for the ProjFlow projection (eq. (7)) plus its dense reference,
+// and the inequality QP on top of it (issue 20).
 #include "control/projection_solver.h"
 
 #include <algorithm>
-#include <map>
+#include <numeric>
 #include <set>
 #include <stdexcept>
 #include <string>
+#include <unordered_map>
 
 #include <fmt/format.h>
 
@@ -54,8 +56,10 @@ int ProjectionSolver::distinct_factors() const {
   return static_cast<int>(std::count(used.begin(), used.end(), 1));
 }
 
-int ProjectionSolver::inequality_groups() const {
-  return static_cast<int>(std::count_if(groups_.begin(), groups_.end(), [](const Group& g) { return !g.g_rows.empty(); }));
+int ProjectionSolver::largest_component() const {
+  size_t n = 0;
+  for (auto& c : components_) n = std::max(n, c.g_rows.size());
+  return static_cast<int>(n);
 }
 
 int ProjectionSolver::jittered_groups() const {
@@ -72,10 +76,9 @@ bool ProjectionSolver::same_operator(const LinearObservation& o) const {
            same_array(a.innerIndexPtr(), b.innerIndexPtr(), a.nonZeros()) &&
            same_array(a.valuePtr(), b.valuePtr(), a.nonZeros());
   };
-  // The inequality rows' variances are part of their factors; the targets y and h are not.
+  // The inequality rows and their variances shape the components; the bounds h do not.
   return obs_.frames == o.frames && obs_.joints == o.joints && same(obs_.A, o.A) &&
-         obs_.inequalities() == o.inequalities() && (o.inequalities() == 0 || same(obs_.G, o.G)) &&
-         obs_.g_variance.size() == o.g_variance.size() && obs_.g_variance == o.g_variance;
+         obs_.inequalities() == o.inequalities() && same(obs_.G, o.G) && obs_.g_variance == o.g_variance;
 }
 
 void ProjectionSolver::set_observation(const LinearObservation& obs) {
@@ -108,6 +111,7 @@ void ProjectionSolver::set_observation(const LinearObservation& obs) {
   obs_ = std::move(copy);
   has_obs_ = true;
   build_structure();
+  build_components();
 }
 
 void ProjectionSolver::update_targets(const Eigen::VectorXd& y) {
@@ -123,12 +127,15 @@ void ProjectionSolver::update_variance(const Eigen::VectorXd& variance) {
   if (!variance.allFinite() || (variance.array() < 0).any())
     throw std::invalid_argument("projection: variances must be finite and >= 0");
   bool any = false;
-  for (Group& g : groups_) {
+  std::vector<char> stale(components_.size(), 0);  // components whose groups got new factors
+  for (size_t gi = 0; gi < groups_.size(); ++gi) {
+    Group& g = groups_[gi];
     bool changed = false;
     for (int r : g.rows) changed |= variance[r] != obs_.variance[r];
     if (!changed) continue;
     for (int r : g.rows) obs_.variance[r] = variance[r];
     if (!g.blocks.empty()) g.factor = factor_for(g), any = true;
+    if (!component_of_group_.empty() && component_of_group_[gi] >= 0) stale[component_of_group_[gi]] = 1;
   }
   obs_.variance = variance;  // rows of entry-less groups too
   if (!any) return;
@@ -143,6 +150,128 @@ void ProjectionSolver::update_variance(const Eigen::VectorXd& variance) {
   factors_ = std::move(kept);
   factor_index_.clear();
   for (size_t i = 0; i < factors_.size(); ++i) factor_index_.emplace(factors_[i].key, static_cast<int>(i));
+  for (size_t c = 0; c < components_.size(); ++c)
+    if (stale[c]) refresh_component(components_[c]);
+}
+
+// ---------------------------------------------------------------- inequality components
+
+void ProjectionSolver::build_components() {
+  components_.clear();
+  const int J = obs_.joints, blocks = 3 * obs_.frames, G = static_cast<int>(groups_.size());
+  group_of_block_.assign(blocks, -1);
+  component_of_group_.assign(groups_.size(), -1);
+  for (int gi = 0; gi < G; ++gi)
+    for (int b : groups_[gi].blocks) group_of_block_[b] = gi;
+  const int p = obs_.inequalities();
+  if (p == 0) return;
+  // Union-find over P's blocks: an equality group's blocks are one node, any other
+  // (frame, axis) block its own. Rows touching a common node share a component.
+  std::vector<int> parent(G + blocks);
+  std::iota(parent.begin(), parent.end(), 0);
+  auto find = [&](int a) {
+    while (parent[a] != a) a = parent[a] = parent[parent[a]];
+    return a;
+  };
+  auto node = [&](Eigen::Index col) {
+    const int b = block_of(col, J);
+    return group_of_block_[b] >= 0 ? group_of_block_[b] : G + b;
+  };
+  for (int r = 0; r < p; ++r) {
+    RowIter it(obs_.G, r);
+    if (!it) continue;
+    int root = find(node(it.col()));
+    for (++it; it; ++it) {
+      const int other = find(node(it.col()));
+      if (other == root) continue;
+      parent[std::max(root, other)] = std::min(root, other);
+      root = std::min(root, other);
+    }
+  }
+  std::unordered_map<int, int> index_of_root;
+  for (int r = 0; r < p; ++r) {
+    RowIter it(obs_.G, r);
+    if (!it) continue;  // an entry-less row constrains nothing (compile never emits one)
+    const int root = find(node(it.col()));
+    auto [pos, fresh] = index_of_root.emplace(root, static_cast<int>(components_.size()));
+    if (fresh) components_.emplace_back();
+    Component& c = components_[pos->second];
+    c.g_rows.push_back(r);
+    for (RowIter e(obs_.G, r); e; ++e) {
+      const int gi = group_of_block_[block_of(e.col(), J)];
+      if (gi >= 0 && std::find(c.groups.begin(), c.groups.end(), gi) == c.groups.end()) c.groups.push_back(gi);
+    }
+  }
+  for (size_t ci = 0; ci < components_.size(); ++ci) {
+    for (int gi : components_[ci].groups) component_of_group_[gi] = static_cast<int>(ci);
+    refresh_component(components_[ci]);
+  }
+}
+
+// U = P G_c^T with P = R^-1 - sum over groups W_g M_g^-1 W_g^T, one row at a time:
+// R^-1 g^T from columns of K^-1, then per equality group the row reaches, the group's
+// part W_g (M_g^-1 A_g R^-1 g^T) = W_g (gain_g^T restricted to g's entries) removed.
+// M' = G_c U + Sigma_c. Only the groups' existing factors are used.
+void ProjectionSolver::refresh_component(Component& c) {
+  const int J = obs_.joints, n = static_cast<int>(c.g_rows.size());
+  const bool euclidean = metric_.is_euclidean();
+  const Eigen::MatrixXd& k_inv = metric_.block_inverse();
+  c.u.assign(n, {});
+  c.scale.resize(n);
+  auto piece_of = [&](std::vector<Piece>& pieces, int block) -> Eigen::VectorXd& {
+    for (auto& pc : pieces)
+      if (pc.block == block) return pc.value;
+    pieces.push_back({block, Eigen::VectorXd::Zero(J)});
+    return pieces.back().value;
+  };
+  for (int k = 0; k < n; ++k) {
+    const int r = c.g_rows[k];
+    std::vector<Piece>& pieces = c.u[k];
+    for (RowIter it(obs_.G, r); it; ++it) {
+      Eigen::VectorXd& v = piece_of(pieces, block_of(it.col(), J));
+      const int j = joint_of(it.col(), J);
+      if (euclidean) v[j] += it.value();
+      else v += it.value() * k_inv.col(j);
+    }
+    double norm = 0;  // g R^-1 g^T
+    for (RowIter it(obs_.G, r); it; ++it) norm += it.value() * piece_of(pieces, block_of(it.col(), J))[joint_of(it.col(), J)];
+    c.scale[k] = norm + obs_.g_variance[r];
+    // Condition on each equality group the row reaches.
+    std::vector<int> reached;
+    for (RowIter it(obs_.G, r); it; ++it) {
+      const int gi = group_of_block_[block_of(it.col(), J)];
+      if (gi >= 0 && std::find(reached.begin(), reached.end(), gi) == reached.end()) reached.push_back(gi);
+    }
+    for (int gi : reached) {
+      const Group& g = groups_[gi];
+      const Factor& f = factors_[g.factor];
+      Eigen::VectorXd coef = Eigen::VectorXd::Zero(f.gain_t.rows());  // M_g^-1 A_g R^-1 g^T
+      for (RowIter it(obs_.G, r); it; ++it) {
+        const int b = block_of(it.col(), J);
+        if (group_of_block_[b] != gi) continue;
+        const int lb = static_cast<int>(std::find(g.blocks.begin(), g.blocks.end(), b) - g.blocks.begin());
+        coef += it.value() * f.gain_t.col(static_cast<Eigen::Index>(lb) * J + joint_of(it.col(), J));
+      }
+      const Eigen::VectorXd wc = f.w * coef;
+      for (size_t lb = 0; lb < g.blocks.size(); ++lb)
+        piece_of(pieces, g.blocks[lb]) -= wc.segment(static_cast<Eigen::Index>(lb) * J, J);
+    }
+    std::sort(pieces.begin(), pieces.end(), [](const Piece& a, const Piece& b) { return a.block < b.block; });
+  }
+  // M'_kl = g_k . U_l over the blocks U_l reaches.
+  std::unordered_map<int, std::vector<std::pair<int, std::pair<int, double>>>> entries_at;  // block -> (row, (joint, value))
+  for (int k = 0; k < n; ++k)
+    for (RowIter it(obs_.G, c.g_rows[k]); it; ++it)
+      entries_at[block_of(it.col(), J)].push_back({k, {joint_of(it.col(), J), it.value()}});
+  c.m = Eigen::MatrixXd::Zero(n, n);
+  for (int l = 0; l < n; ++l)
+    for (const Piece& pc : c.u[l]) {
+      auto found = entries_at.find(pc.block);
+      if (found == entries_at.end()) continue;
+      for (const auto& [k, e] : found->second) c.m(k, l) += e.second * pc.value[e.first];
+    }
+  c.m = 0.5 * (c.m + c.m.transpose());
+  for (int k = 0; k < n; ++k) c.m(k, k) += obs_.g_variance[c.g_rows[k]];
 }
 
 namespace {
@@ -159,35 +288,28 @@ void ProjectionSolver::build_structure() {
   factor_index_.clear();
   const int J = obs_.joints;
   std::vector<int> local_block(3 * obs_.frames, -1);
-  auto row_groups = coupled_groups(obs_);
+  auto row_groups = coupled_row_groups(obs_);
   groups_.reserve(row_groups.size());
-  for (auto& rg : row_groups) {
+  for (auto& rows : row_groups) {
     Group g;
-    g.rows = std::move(rg.rows);
-    g.g_rows = std::move(rg.g_rows);
-    auto touch = [&](const Eigen::SparseMatrix<double, Eigen::RowMajor>& M, int r) {
-      for (RowIter it(M, r); it; ++it) {
+    g.rows = std::move(rows);
+    for (int r : g.rows)
+      for (RowIter it(obs_.A, r); it; ++it) {
         int b = block_of(it.col(), J);
         if (local_block[b] < 0) local_block[b] = static_cast<int>(g.blocks.size()), g.blocks.push_back(b);
       }
-    };
-    for (int r : g.rows) touch(obs_.A, r);
-    for (int r : g.g_rows) touch(obs_.G, r);
     // The group's rows relative to its blocks: everything M_c and W_c depend on
     // besides R. Two groups with the same key (e.g. the same joints at two
     // frames) get the same factorisation.
     append_bytes(g.structure, static_cast<int>(g.rows.size()));
-    append_bytes(g.structure, static_cast<int>(g.g_rows.size()));
     append_bytes(g.structure, static_cast<int>(g.blocks.size()));
-    auto key_row = [&](const Eigen::SparseMatrix<double, Eigen::RowMajor>& M, int r) {
-      append_bytes(g.structure, static_cast<int>(M.outerIndexPtr()[r + 1] - M.outerIndexPtr()[r]));
-      for (RowIter it(M, r); it; ++it) {
+    for (int r : g.rows) {
+      append_bytes(g.structure, static_cast<int>(obs_.A.outerIndexPtr()[r + 1] - obs_.A.outerIndexPtr()[r]));
+      for (RowIter it(obs_.A, r); it; ++it) {
         append_bytes(g.structure, local_block[block_of(it.col(), J)] * J + joint_of(it.col(), J));
         append_bytes(g.structure, it.value());
       }
-    };
-    for (int r : g.rows) key_row(obs_.A, r);
-    for (int r : g.g_rows) key_row(obs_.G, r);
+    }
     for (int b : g.blocks) local_block[b] = -1;
     if (!g.blocks.empty()) g.factor = factor_for(g);
     groups_.push_back(std::move(g));
@@ -198,14 +320,10 @@ int ProjectionSolver::factor_for(const Group& g) {
   std::string key = g.structure;
   std::vector<double> variance;
   for (int r : g.rows) variance.push_back(obs_.variance[r]), append_bytes(key, obs_.variance[r]);
-  for (int r : g.g_rows) variance.push_back(obs_.g_variance[r]), append_bytes(key, obs_.g_variance[r]);
   auto found = factor_index_.find(key);
   if (found != factor_index_.end()) return found->second;
 
-  const int J = obs_.joints, mE = static_cast<int>(g.rows.size()), m = mE + static_cast<int>(g.g_rows.size());
-  const int nb = static_cast<int>(g.blocks.size());
-  // Local row k: equality row g.rows[k] for k < mE, inequality row g.g_rows[k - mE] after.
-  auto row_iter = [&](int k) { return k < mE ? RowIter(obs_.A, g.rows[k]) : RowIter(obs_.G, g.g_rows[k - mE]); };
+  const int J = obs_.joints, m = static_cast<int>(g.rows.size()), nb = static_cast<int>(g.blocks.size());
   const bool euclidean = metric_.is_euclidean();
   const Eigen::MatrixXd& k_inv = metric_.block_inverse();
   auto local = [&](Eigen::Index col) {
@@ -218,35 +336,25 @@ int ProjectionSolver::factor_for(const Group& g) {
   // of block b adds a * (column j of K^-1) to column k of W in block b.
   f.w = Eigen::MatrixXd::Zero(static_cast<Eigen::Index>(J) * nb, m);
   for (int k = 0; k < m; ++k)
-    for (RowIter it = row_iter(k); it; ++it) {
+    for (RowIter it(obs_.A, g.rows[k]); it; ++it) {
       const int b = local(it.col()), j = joint_of(it.col(), J);
       if (euclidean) f.w(b * J + j, k) += it.value();
       else f.w.block(b * J, k, J, 1) += it.value() * k_inv.col(j);
     }
-  // M0 = C_c W: only the rows of W that C_c's entries hit contribute.
+  // M0 = A_c W: only the rows of W that A_c's entries hit contribute.
   f.m0 = Eigen::MatrixXd::Zero(m, m);
   for (int k = 0; k < m; ++k)
-    for (RowIter it = row_iter(k); it; ++it) f.m0.row(k) += it.value() * f.w.row(local(it.col()) * J + joint_of(it.col(), J));
-  factorise(f, variance, mE);
+    for (RowIter it(obs_.A, g.rows[k]); it; ++it) f.m0.row(k) += it.value() * f.w.row(local(it.col()) * J + joint_of(it.col(), J));
+  factorise(f, variance);
   factors_.push_back(std::move(f));
   factor_index_.emplace(factors_.back().key, static_cast<int>(factors_.size()) - 1);
   return static_cast<int>(factors_.size()) - 1;
 }
 
-void ProjectionSolver::factorise(Factor& f, const std::vector<double>& variance_all, int equalities) {
+void ProjectionSolver::factorise(Factor& f, const std::vector<double>& variance) {
   ++factorizations_;
-  const int m_all = static_cast<int>(variance_all.size()), m = equalities, mI = m_all - m;
-  const std::vector<double> variance(variance_all.begin(), variance_all.begin() + m);
-  f.jittered = false;
-  if (m == 0) {  // inequalities only: the equality update is empty
-    f.gain_t.resize(0, f.w.rows());
-    f.l_eq.resize(0, 0);
-    f.eq_to_ineq.resize(0, mI);
-    f.m = f.m0;
-    for (int k = 0; k < m_all; ++k) f.m(k, k) += variance_all[k];
-    return;
-  }
-  Eigen::MatrixXd M = f.m0.topLeftCorner(m, m);
+  const int m = static_cast<int>(variance.size());
+  Eigen::MatrixXd M = f.m0;
   for (int k = 0; k < m; ++k) M(k, k) += variance[k];
   Eigen::LLT<Eigen::MatrixXd> llt(M);
   auto ill_conditioned = [&]() {
@@ -254,6 +362,7 @@ void ProjectionSolver::factorise(Factor& f, const std::vector<double>& variance_
     const Eigen::VectorXd pivots = llt.matrixLLT().diagonal();
     return pivots.minCoeff() * pivots.minCoeff() < 1e-13 * M.diagonal().maxCoeff();
   };
+  f.jittered = false;
   if (ill_conditioned()) {
     const double mean_diag = M.diagonal().mean();
     const double jitter = 1e-8 * (mean_diag > 0 ? mean_diag : 1.0);
@@ -265,15 +374,7 @@ void ProjectionSolver::factorise(Factor& f, const std::vector<double>& variance_
       throw std::runtime_error("projection: A R^-1 A^T + Sigma is not positive definite even with jitter");
   }
   // Kalman-style gain (transposed) M_c^-1 W_c^T, so a projection is one product per group.
-  f.gain_t = llt.solve(f.w.leftCols(m).transpose());
-  if (mI == 0) return;
-  // The QP's data: M over all rows (the factorised equality block, jitter included),
-  // its equality factor, and what the equality update does to the inequality values.
-  f.m = f.m0;
-  for (int k = 0; k < m_all; ++k) f.m(k, k) += variance_all[k];
-  f.m.topLeftCorner(m, m) = M;
-  f.l_eq = llt.matrixL();
-  f.eq_to_ineq = llt.solve(f.m0.block(0, m, m, mI));
+  f.gain_t = llt.solve(f.w.transpose());
 }
 
 void ProjectionSolver::project_in_place(Eigen::Ref<Eigen::MatrixXd> x, ActiveSets* warm) const {
@@ -292,72 +393,59 @@ void ProjectionSolver::project_in_place(Eigen::Ref<Eigen::MatrixXd> x, ActiveSet
     col.setConstant(obs_.y[r]);
     for (RowIter it(obs_.A, r); it; ++it) col -= it.value() * xt.col(it.col());
   }
-  // The same for the inequality rows: h - G x_hat.
-  const int p = obs_.inequalities();
-  Eigen::MatrixXd gt(S, p);
-  for (int r = 0; r < p; ++r) {
-    auto col = gt.col(r);
-    col.setConstant(obs_.h[r]);
-    for (RowIter it(obs_.G, r); it; ++it) col -= it.value() * xt.col(it.col());
-  }
-  std::vector<std::vector<int>> active(warm ? S : 0);
-  if (warm && static_cast<Eigen::Index>(warm->columns.size()) != S) warm->columns.assign(S, {});
-  Eigen::MatrixXd rc, dt, ri, ci;
-  Eigen::VectorXd r_all, lambda_eq, delta, dx;
-  std::vector<int> warm_local;
+  Eigen::MatrixXd rc, dt;
   for (const Group& g : groups_) {
     if (g.factor < 0) continue;
     const Factor& f = factors_[g.factor];
-    const int m = static_cast<int>(g.rows.size()), mI = static_cast<int>(g.g_rows.size());
-    auto scatter = [&](Eigen::Index row0, Eigen::Index rows, const auto& update) {  // update: rows x (J * blocks)
-      for (size_t b = 0; b < g.blocks.size(); ++b) {
-        const int t = g.blocks[b] / 3, c = g.blocks[b] % 3;
-        for (int j = 0; j < J; ++j)
-          xt.col((t * J + j) * 3 + c).segment(row0, rows) += update.col(static_cast<Eigen::Index>(b) * J + j);
-      }
-    };
+    const int m = static_cast<int>(g.rows.size());
     rc.resize(S, m);
     for (int k = 0; k < m; ++k) rc.col(k) = rt.col(g.rows[k]);
-    if (m > 0) {
-      dt.noalias() = rc * f.gain_t;  // eq. (7): (R^-1 A_c^T M_c^-1 r)^T
-      scatter(0, S, dt);
+    dt.noalias() = rc * f.gain_t;  // eq. (7): (R^-1 A_c^T M_c^-1 r)^T
+    for (size_t b = 0; b < g.blocks.size(); ++b) {
+      const int t = g.blocks[b] / 3, c = g.blocks[b] % 3;
+      for (int j = 0; j < J; ++j) xt.col((t * J + j) * 3 + c) += dt.col(static_cast<Eigen::Index>(b) * J + j);
     }
-    if (mI == 0) continue;
-    // Inequality values after the equality update: c_I = r_E M_EE^-1 M_EI - r_I (<= 0 is feasible).
-    ri.resize(S, mI);
-    for (int k = 0; k < mI; ++k) ri.col(k) = gt.col(g.g_rows[k]);
-    ci = -ri;
-    if (m > 0) ci.noalias() += rc * f.eq_to_ineq;
+  }
+  // Inequalities on top of the equality update x_e: per component, the values
+  // G x_e - h of every column, and the QP (M', h - G x_e) where a row is violated.
+  if (warm && static_cast<Eigen::Index>(warm->columns.size()) != S) warm->columns.assign(S, {});
+  std::vector<std::vector<int>> active(warm ? S : 0);
+  Eigen::MatrixXd values;
+  std::vector<int> warm_local;
+  for (const Component& c : components_) {
+    const int n = static_cast<int>(c.g_rows.size());
+    values.resize(S, n);
+    for (int k = 0; k < n; ++k) {
+      auto col = values.col(k);
+      col.setConstant(-obs_.h[c.g_rows[k]]);
+      for (RowIter it(obs_.G, c.g_rows[k]); it; ++it) col += it.value() * xt.col(it.col());
+    }
     for (Eigen::Index s = 0; s < S; ++s) {
       bool violated = false;
-      for (int k = 0; k < mI && !violated; ++k) violated = ci(s, k) > inequality_tolerance(ri(s, k));
-      // Feasible after the equality update: that is the optimum, with nothing active.
+      for (int k = 0; k < n && !violated; ++k) violated = values(s, k) > inequality_tolerance(values(s, k));
+      // x_e meets every row: it is the optimum, with nothing active.
       if (!violated) continue;
       warm_local.clear();
       if (warm)
         for (int row : warm->columns[s]) {
-          auto pos = std::lower_bound(g.g_rows.begin(), g.g_rows.end(), row);
-          if (pos != g.g_rows.end() && *pos == row) warm_local.push_back(m + static_cast<int>(pos - g.g_rows.begin()));
+          auto pos = std::lower_bound(c.g_rows.begin(), c.g_rows.end(), row);
+          if (pos != c.g_rows.end() && *pos == row) warm_local.push_back(static_cast<int>(pos - c.g_rows.begin()));
         }
-      r_all.resize(m + mI);
-      r_all.head(m) = rc.row(s).transpose();
-      r_all.tail(mI) = ri.row(s).transpose();
-      // The equality projection's multipliers M_EE^-1 r_E, through the group's factor.
-      lambda_eq = r_all.head(m);
-      if (m > 0) {
-        f.l_eq.triangularView<Eigen::Lower>().solveInPlace(lambda_eq);
-        f.l_eq.transpose().triangularView<Eigen::Upper>().solveInPlace(lambda_eq);
-      }
-      DualQpResult res = solve_dual_qp(f.m, r_all, m, f.l_eq, lambda_eq, warm_local);
+      const Eigen::VectorXd r = -values.row(s).transpose();
+      DualQpResult res = solve_dual_qp(c.m, r, 0, Eigen::MatrixXd(0, 0), Eigen::VectorXd(0), warm_local, c.scale);
       ++qp_solves_;
       qp_iterations_ += res.iterations;
-      if (!res.feasible) fail_infeasible(g, res.conflict);
-      delta = res.lambda;
-      delta.head(m) -= lambda_eq;
-      dx.noalias() = f.w * delta;  // the QP's correction on top of the equality update
-      scatter(s, 1, dx.transpose());
+      if (!res.feasible) fail_infeasible(c, res.conflict);
+      for (int k = 0; k < n; ++k) {  // x = x_e + U lambda
+        const double lk = res.lambda[k];
+        if (lk == 0.0) continue;
+        for (const Piece& pc : c.u[k]) {
+          const int t = pc.block / 3, ax = pc.block % 3;
+          for (int j = 0; j < J; ++j) xt(s, (t * J + j) * 3 + ax) += lk * pc.value[j];
+        }
+      }
       if (warm)
-        for (int k : res.active) active[s].push_back(g.g_rows[k - m]);
+        for (int k : res.active) active[s].push_back(c.g_rows[k]);
     }
   }
   if (warm)
@@ -368,15 +456,31 @@ void ProjectionSolver::project_in_place(Eigen::Ref<Eigen::MatrixXd> x, ActiveSet
   transpose_tiled(xt, x);
 }
 
-void ProjectionSolver::fail_infeasible(const Group& g, const std::vector<int>& local_rows) const {
-  const int J = obs_.joints, m = static_cast<int>(g.rows.size());
+void ProjectionSolver::fail_infeasible(const Component& c, const std::vector<int>& local_rows) const {
+  const int J = obs_.joints;
   std::set<int> items, frames;
-  for (int k : local_rows) {
-    const bool eq = k < m;
-    const int row = eq ? g.rows[k] : g.g_rows[k - m];
-    const auto& owner = eq ? obs_.item_of_row : obs_.item_of_g_row;
+  auto note = [&](const Eigen::SparseMatrix<double, Eigen::RowMajor>& M, const std::vector<int>& owner, int row) {
     if (row < static_cast<int>(owner.size())) items.insert(owner[row]);
-    for (RowIter it(eq ? obs_.A : obs_.G, row); it; ++it) frames.insert(static_cast<int>(it.col() / (3 * J)));
+    for (RowIter it(M, row); it; ++it) frames.insert(static_cast<int>(it.col() / (3 * J)));
+  };
+  for (int k : local_rows) {
+    const int r = c.g_rows[k];
+    note(obs_.G, obs_.item_of_g_row, r);
+    // The hard equality rows this row depends on: M_g^-1 A_g R^-1 g^T's large entries.
+    for (int gi : c.groups) {
+      const Group& g = groups_[gi];
+      const Factor& f = factors_[g.factor];
+      Eigen::VectorXd coef = Eigen::VectorXd::Zero(f.gain_t.rows());
+      for (RowIter it(obs_.G, r); it; ++it) {
+        const int b = block_of(it.col(), J);
+        if (group_of_block_[b] != gi) continue;
+        const int lb = static_cast<int>(std::find(g.blocks.begin(), g.blocks.end(), b) - g.blocks.begin());
+        coef += it.value() * f.gain_t.col(static_cast<Eigen::Index>(lb) * J + joint_of(it.col(), J));
+      }
+      const double top = coef.size() ? coef.cwiseAbs().maxCoeff() : 0.0;
+      for (Eigen::Index q = 0; q < coef.size(); ++q)
+        if (top > 0 && std::abs(coef[q]) > 1e-6 * top && obs_.is_hard(g.rows[q])) note(obs_.A, obs_.item_of_row, g.rows[q]);
+    }
   }
   std::string names;
   int count = 0;

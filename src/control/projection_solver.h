@@ -2,8 +2,8 @@
 // solved per group of coupled rows without forming anything of size d x d, with
 // the factorisations cached while A and Sigma stay the same. With inequality rows
 // (G x <= h, issue 20) it is the R-metric projection onto the equality set
-// intersected with the half-spaces: an exact QP per coupled group
-// (control/active_set_qp.h) started from the equality projection.
+// intersected with the half-spaces: an exact QP over the inequality rows alone, in
+// the range space the equality factorisations leave (control/active_set_qp.h).
 #pragma once
 #include <Eigen/Dense>
 #include <cstdint>
@@ -45,16 +45,18 @@ namespace mc {
 // Batches. project() works on the transpose (samples x d), where one coordinate
 // of all samples is contiguous, so every group's update is a dense GEMM.
 //
-// Inequalities. Rows of G join the union-find like rows of A; a group with
-// inequality rows keeps, besides the equality gain, M = C R^-1 C^T + Sigma over
-// all its rows (C = [A_c; G_c]), W = R^-1 C^T and the Cholesky factor of M's
-// equality block. A projection first applies the equality update to every column
-// (one GEMM, as without inequalities), reads the inequality values off it (one
-// more small GEMM) and runs the dual active-set QP only for the columns where a
-// row is violated or a warm start names active rows. The QP is exact: hard
-// equalities hold to solver precision, hard inequalities to ~1e-11 of their
-// residual, and the answer does not depend on the warm start. A hard set that no
-// motion meets is a UserError naming the items.
+// Inequalities. The equality groups stay as they are. After the equality update
+// x_e, what is left is min |x - x_e|_P^-1 over G x <= h with P = R^-1 - R^-1 A^T
+// M^-1 A R^-1 the equality projection's posterior covariance: P is block-diagonal
+// over the equality groups (and R^-1 on blocks no row touches), so two inequality
+// rows interact only when they touch a common group or block. Such "components" of
+// inequality rows keep U = P G_c^T (stored per row as pieces on the blocks it
+// reaches, built from the groups' W and gains: nothing new is factorised) and
+// M' = G_c U + Sigma_c. A projection reads G x_e - h for every column and runs the
+// dual active-set QP on (M', h - G x_e) only for the columns with a violated row;
+// then x = x_e + U lambda. Exact: hard equalities hold to solver precision, hard
+// inequalities to ~1e-11 of their residual, whatever the warm start. A hard row
+// that the hard equalities and other hard rows rule out is a UserError naming them.
 class ProjectionSolver {
  public:
   explicit ProjectionSolver(KinematicMetric metric);
@@ -91,35 +93,45 @@ class ProjectionSolver {
   int distinct_factors() const;  // factorisations the current groups use
   int largest_group() const;
   int jittered_groups() const;
-  int inequality_groups() const;            // groups that hold inequality rows
-  int64_t qp_solves() const { return qp_solves_; }          // (group, column) QPs run so far
+  int inequality_components() const { return static_cast<int>(components_.size()); }
+  int largest_component() const;                          // inequality rows in the largest one
+  int64_t qp_solves() const { return qp_solves_; }          // (component, column) QPs run so far
   int64_t qp_iterations() const { return qp_iterations_; }  // rows added or dropped in them
 
  private:
   // What a group's system depends on: its rows relative to its blocks.
   struct Factor {
     std::string key;         // Group::structure + the rows' variances
-    Eigen::MatrixXd m0;      // C_c R^-1 C_c^T over all rows, equalities first (lower triangle is what LLT reads)
-    Eigen::MatrixXd w;       // W_c = R^-1 C_c^T on the touched blocks: (J * blocks) x m_c
-    Eigen::MatrixXd gain_t;  // equality rows: M_EE^-1 W_E^T: m_E x (J * blocks)
+    Eigen::MatrixXd m0;      // A_c R^-1 A_c^T (lower triangle is what LLT reads)
+    Eigen::MatrixXd w;       // W_c = R^-1 A_c^T on the touched blocks: (J * blocks) x m_c
+    Eigen::MatrixXd gain_t;  // G_c^T = M_c^-1 W_c^T: m_c x (J * blocks)
     bool jittered = false;
-    // Groups with inequality rows only.
-    Eigen::MatrixXd m;           // M = m0 + Sigma over all rows
-    Eigen::MatrixXd l_eq;        // Cholesky factor (lower) of M_EE as factorised (jitter included)
-    Eigen::MatrixXd eq_to_ineq;  // M_EE^-1 M_EI: inequality values after the equality update, plus -r_I
   };
   struct Group {
-    std::vector<int> rows;    // global row indices of A
-    std::vector<int> g_rows;  // global row indices of G (empty: no inequalities)
+    std::vector<int> rows;    // global row indices
     std::vector<int> blocks;  // (frame, axis) blocks touched: frame * 3 + axis
-    std::string structure;    // key of C_c relative to the blocks (no variances)
+    std::string structure;    // key of A_c relative to the blocks (no variances)
     int factor = -1;          // index into factors_
   };
+  // Inequality rows coupled through P (see the class comment).
+  struct Piece {
+    int block = 0;          // frame * 3 + axis
+    Eigen::VectorXd value;  // J entries of P g^T on that block
+  };
+  struct Component {
+    std::vector<int> g_rows;               // global rows of G, ascending
+    std::vector<int> groups;               // equality groups (indices into groups_) the rows reach
+    std::vector<std::vector<Piece>> u;     // per row: P g^T
+    Eigen::MatrixXd m;                     // M' = G_c P G_c^T + Sigma_c
+    Eigen::VectorXd scale;                 // per row g R^-1 g^T + variance: the dependency test's scale
+  };
   void build_structure();
+  void build_components();
+  void refresh_component(Component& c);
   int factor_for(const Group& g);  // finds or computes the factor of g's structure + variances
-  void factorise(Factor& f, const std::vector<double>& variance, int equalities);
+  void factorise(Factor& f, const std::vector<double>& variance);
   bool same_operator(const LinearObservation& obs) const;
-  [[noreturn]] void fail_infeasible(const Group& g, const std::vector<int>& local_rows) const;
+  [[noreturn]] void fail_infeasible(const Component& c, const std::vector<int>& local_rows) const;
 
   KinematicMetric metric_;
   LinearObservation obs_;
@@ -127,6 +139,9 @@ class ProjectionSolver {
   std::vector<Group> groups_;
   std::vector<Factor> factors_;
   std::unordered_map<std::string, int> factor_index_;  // structure + variances -> factor
+  std::vector<int> group_of_block_;     // (frame, axis) block -> equality group holding it, -1
+  std::vector<Component> components_;
+  std::vector<int> component_of_group_;  // equality group -> the component whose rows reach it, -1
   int64_t factorizations_ = 0, structure_builds_ = 0;
   mutable int64_t qp_solves_ = 0, qp_iterations_ = 0;
 };
