@@ -700,37 +700,6 @@ std::vector<std::vector<int>> coupled_row_groups(const LinearObservation& obs, b
   return groups;
 }
 
-std::vector<RowGroup> coupled_groups(const LinearObservation& obs) {
-  const int blocks = 3 * obs.frames, J = obs.joints;
-  const int m = obs.rows(), p = obs.inequalities();
-  auto block_of = [&](int col) { return (col / (3 * J)) * 3 + col % 3; };
-  UnionFind uf(blocks);
-  auto unite_row = [&](const Eigen::SparseMatrix<double, Eigen::RowMajor>& M, int r) {
-    Eigen::SparseMatrix<double, Eigen::RowMajor>::InnerIterator it(M, r);
-    if (!it) return;
-    int first = block_of(it.col());
-    for (++it; it; ++it) uf.unite(first, block_of(it.col()));
-  };
-  for (int r = 0; r < m; ++r) unite_row(obs.A, r);
-  for (int r = 0; r < p; ++r) unite_row(obs.G, r);
-  std::map<int, RowGroup> by_root;
-  std::vector<RowGroup> groups;
-  for (int r = 0; r < m; ++r) {
-    Eigen::SparseMatrix<double, Eigen::RowMajor>::InnerIterator it(obs.A, r);
-    if (!it) groups.push_back({{r}, {}});
-    else by_root[uf.find(block_of(it.col()))].rows.push_back(r);
-  }
-  for (int r = 0; r < p; ++r) {
-    Eigen::SparseMatrix<double, Eigen::RowMajor>::InnerIterator it(obs.G, r);
-    if (!it) groups.push_back({{}, {r}});
-    else by_root[uf.find(block_of(it.col()))].g_rows.push_back(r);
-  }
-  for (auto& [root, g] : by_root) groups.push_back(std::move(g));
-  auto order = [m](const RowGroup& g) { return g.rows.empty() ? m + g.g_rows.front() : g.rows.front(); };
-  std::sort(groups.begin(), groups.end(), [&](auto& a, auto& b) { return order(a) < order(b); });
-  return groups;
-}
-
 void check_hard_rows(const LinearObservation& obs) {
   const int J = obs.joints;
   for (const auto& rows : coupled_row_groups(obs, /*only_hard=*/true)) {

@@ -75,16 +75,6 @@ LinearObservation compile(const ConstraintSpec& spec, int frames, const Skeleton
 // entry form singleton groups.
 std::vector<std::vector<int>> coupled_row_groups(const LinearObservation& obs, bool only_hard = false);
 
-// The same over the equality rows and the inequality rows together: an inequality
-// couples what it touches exactly as an equality does. Groups without any entry
-// (an empty row) are singletons. Ordered by their first equality row, then (groups
-// of inequalities only) by their first inequality row.
-struct RowGroup {
-  std::vector<int> rows;    // rows of A
-  std::vector<int> g_rows;  // rows of G
-};
-std::vector<RowGroup> coupled_groups(const LinearObservation& obs);
-
 // The hard rows must have full row rank, or A_hard R^-1 A_hard^T is singular and
 // the projection (eq. (7)) undefined. Rank does not depend on R (R^-1 is SPD), so
 // each coupled group of hard rows is tested through the Gram matrix of its
