@@ -19,6 +19,7 @@
 #include "data/skeleton.h"
 #include "eval/t2m_evaluator.h"
 #include "samplers/motion_generator.h"
+#include "train/dependencies.h"
 #include "train/train_job.h"
 #include "train/trainer.h"
 
@@ -239,6 +240,7 @@ HealthReport check_health(const HealthOptions& options) {
   Component proto("protocol", "text_to_motion");  // first caption and length of each clip
   const std::vector<ControlTask> tasks =
       as_protocol(proto).make_tasks(data, ref_idx, static_cast<uint64_t>(opt.seed));
+  resolve_dependencies(gen_cfg);
   auto gen = as_generator(gen_cfg).make(ctx);
   rep.generator = gen->describe();
   GeneratedMotions g = gen->generate(tasks, static_cast<uint64_t>(opt.seed));

@@ -12,36 +12,15 @@
 #include <vector>
 
 #include "control/camera.h"
+#include "data/joints_view.h"
 #include "data/motion_set.h"
 #include "data/skeleton.h"
 
 namespace mc {
 
 // ---------------------------------------------------------------------------
-// Inputs
+// Inputs (JointsView and joints_view: data/joints_view.h)
 // ---------------------------------------------------------------------------
-
-// Read-only view of one motion stored frame-major as [frames, joints, 3] floats
-// (world metres, Y up), exactly like one clip of a MotionSet. Frames in
-// [length, frames) are padding. Does not own its data.
-struct JointsView {
-  const float* data = nullptr;
-  int frames = 0;  // stored (possibly padded) frames
-  int joints = 0;
-  int length = 0;  // valid frames, <= frames
-
-  Eigen::Vector3d at(int t, int j) const {
-    const float* p = data + (static_cast<size_t>(t) * joints + j) * 3;
-    return {p[0], p[1], p[2]};
-  }
-};
-
-// View over `data` (size must be frames * joints * 3); length < 0 means `frames`.
-// UserError naming `what` on a size mismatch or an invalid length.
-JointsView joints_view(const std::vector<float>& data, int frames, int joints, int length = -1,
-                       const std::string& what = "motion");
-// View of clip i of a motion set (frames = t_max, length = lengths[i]).
-JointsView joints_view(const MotionSet& set, size_t i);
 
 // Read-only view of a per-entry mask stored as [frames, joints, channels] bytes
 // (nonzero = selected). Control masks use channels = 3 (one flag per axis); the
@@ -241,13 +220,7 @@ LiftingMetrics lifting_metrics(const std::vector<LiftingSample>& samples, int ro
 // 5. Tokenizer reconstruction MPJPE
 // ---------------------------------------------------------------------------
 
-// Mean ||r_tj - g_tj|| (metres) over all joints of all valid frames of all clips
-// (frame-weighted, as MoMask's evaluation pools poses). Valid frames = the ground
-// truth's length; the reconstruction must have the same length. root_aligned
-// subtracts each frame's root position from both first (MoMask's variant).
-double reconstruction_mpjpe(const std::vector<JointsView>& reconstruction,
-                            const std::vector<JointsView>& ground_truth, bool root_aligned = false,
-                            int root = 0);
+// reconstruction_mpjpe (data/joints_view.h): the models layer measures with it too.
 
 // ---------------------------------------------------------------------------
 // 6. Motion realism (evaluator-free; the prior health check, docs/metrics.md)

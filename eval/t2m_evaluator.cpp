@@ -2,6 +2,8 @@
 // model type `t2m_evaluator`) and the loader that embeds texts and motions.
 #include "eval/t2m_evaluator.h"
 
+#include "models/sharded_dropout.h"
+
 #include <yaml-cpp/yaml.h>
 
 #include <filesystem>
@@ -12,7 +14,8 @@
 #include "data/features.h"
 #include "data/normalizer.h"
 #include "eval/metrics.h"
-#include "train/trainer.h"
+#include "models/trainable.h"
+#include "models/trained_run.h"
 
 namespace mc {
 namespace fs = std::filesystem;
@@ -55,9 +58,9 @@ struct MotionEncoderImpl : nn::Module {
     movement = register_module(
         "movement",
         nn::Sequential(nn::Conv1d(nn::Conv1dOptions(feature_dim, c.movement_dim, 4).stride(2).padding(1)),
-                       nn::Dropout(c.dropout), nn::LeakyReLU(nn::LeakyReLUOptions().negative_slope(0.2)),
+                       ShardedDropout(c.dropout), nn::LeakyReLU(nn::LeakyReLUOptions().negative_slope(0.2)),
                        nn::Conv1d(nn::Conv1dOptions(c.movement_dim, c.movement_dim, 4).stride(2).padding(1)),
-                       nn::Dropout(c.dropout), nn::LeakyReLU(nn::LeakyReLUOptions().negative_slope(0.2))));
+                       ShardedDropout(c.dropout), nn::LeakyReLU(nn::LeakyReLUOptions().negative_slope(0.2))));
     gru = register_module("gru",
                           nn::GRU(nn::GRUOptions(c.movement_dim, c.motion_hidden).batch_first(true).bidirectional(true)));
     head = register_module("head", embedding_head(2 * c.motion_hidden, c.motion_hidden, c.embed_dim));
@@ -121,9 +124,11 @@ EncodedTexts encode_texts(const TextVocab& vocab, const std::vector<std::string>
 }
 
 // Normalised feature windows [B, Tpad, F] of clips: `starts`/`takes` in feature frames.
+// Tpad covers the longest take (at least `min_frames`).
 torch::Tensor gather_windows(const FeatureSet& fs_, const std::vector<int64_t>& idx, const std::vector<int64_t>& starts,
-                             const std::vector<int64_t>& takes, const torch::Tensor& mean, const torch::Tensor& std) {
-  int64_t T = 4;
+                             const std::vector<int64_t>& takes, const torch::Tensor& mean, const torch::Tensor& std,
+                             int64_t min_frames = 4) {
+  int64_t T = min_frames;
   for (auto t : takes) T = std::max(T, (t + 3) / 4 * 4);
   const int64_t F = fs_.dim;
   auto out = torch::zeros({static_cast<int64_t>(idx.size()), T, F});
@@ -151,8 +156,10 @@ class T2MEvaluatorTrainer : public Trainable {
   nn::Module& module() override { return *net_; }
 
   // Random caption and random unit-aligned crop per clip (T2M's loader), both
-  // drawn from torch's generator so resume is exact.
-  std::pair<torch::Tensor, torch::Tensor> sample_motions(const std::vector<int64_t>& idx, bool random_crop) {
+  // drawn from torch's generator so resume is exact. With a shard: every clip's
+  // crop is drawn, the shard's rows are built, padded as the whole batch is.
+  std::pair<torch::Tensor, torch::Tensor> sample_motions(const std::vector<int64_t>& idx, bool random_crop,
+                                                         const BatchShard& shard = {}) {
     std::vector<int64_t> starts, takes;
     const int64_t unit = cfg_.unit_length;
     for (int64_t i : idx) {
@@ -164,21 +171,29 @@ class T2MEvaluatorTrainer : public Trainable {
       starts.push_back(start);
       takes.push_back(take);
     }
-    auto x = gather_windows(features_, idx, starts, takes, net_->feature_mean, net_->feature_std);
-    return {x, torch::tensor(takes)};
+    int64_t T = 4;
+    for (auto t : takes) T = std::max(T, (t + 3) / 4 * 4);
+    auto x = gather_windows(features_, shard.local(idx), shard.local(starts), shard.local(takes), net_->feature_mean,
+                            net_->feature_std, T);
+    return {x, torch::tensor(shard.local(takes))};
   }
 
-  LossOutput loss(const std::vector<int64_t>& idx) override {
+  // A data-parallel shard encodes its rows, gathers every rank's embeddings and
+  // computes the whole batch's loss (rolled negatives cross shard boundaries;
+  // train/batch_shard.h, replicated), so its gradient is the one-process gradient
+  // through its own rows.
+  LossOutput loss(const std::vector<int64_t>& idx, const BatchShard& shard) override {
     const MotionSet& set = ctx_.data->set();
     std::vector<std::string> caps;
     for (int64_t i : idx) {
       const auto& c = set.captions[i];
       caps.push_back(c[torch::randint(0, static_cast<int64_t>(c.size()), {1}).item<int64_t>()]);
     }
-    auto [x, lengths] = sample_motions(idx, true);
-    auto txt = encode_texts(vocab_, caps, cfg_.max_words);
-    auto t = net_->text->forward(txt.ids.to(ctx_.device), txt.lengths);
-    auto m = net_->motion->forward(x.to(ctx_.device), lengths);
+    auto [x, lengths] = sample_motions(idx, true, shard);
+    auto txt = encode_texts(vocab_, shard.local(caps), cfg_.max_words);
+    const int64_t n = idx.size();
+    auto t = shard.gather(net_->text->forward(txt.ids.to(ctx_.device), txt.lengths), n);
+    auto m = shard.gather(net_->motion->forward(x.to(ctx_.device), lengths), n);
     // Margin contrastive loss (T2M): pull pairs together, push rolled pairs past the margin.
     auto d_pos = (t - m).norm(2, 1);
     auto d_neg = (t - m.roll(1, 0)).norm(2, 1);
@@ -190,10 +205,12 @@ class T2MEvaluatorTrainer : public Trainable {
     auto pos = d_pos.pow(2).mean();
     auto neg = (torch::clamp(cfg_.margin - d_neg, 0).pow(2) * valid).sum() / valid.sum().clamp_min(1);
     LossOutput out;
-    out.loss = pos + neg;
-    out.parts = {{"pos_dist", d_pos.mean().detach()}, {"neg_dist", d_neg.mean().detach()}};
+    out.loss = shard.replicated(pos + neg);
+    out.parts = {{"pos_dist", shard.replicated(d_pos.mean().detach())},
+                 {"neg_dist", shard.replicated(d_neg.mean().detach())}};
     return out;
   }
+  bool shards_batches() const override { return true; }
 
   // Validation retrieval quality with the first caption of each clip (pools of 32).
   std::map<std::string, double> evaluate() override {
@@ -253,43 +270,22 @@ MC_REGISTER_MODEL("t2m_evaluator", T2MEvaluatorConfig,
 // ---------------------------------------------------------------- loading
 
 T2MEvaluator T2MEvaluator::load(const std::string& run_dir) {
-  fs::path dir(run_dir);
-  fs::path final_pt = dir / "checkpoints" / "final.pt";
-  for (const fs::path& p : {dir / "config.yaml", final_pt, dir / "outputs" / "vocab.txt",
-                            dir / "outputs" / "evaluator_meta.yaml"})
-    if (!fs::exists(p))
-      fail("evaluator run '{}' is incomplete: '{}' is missing; train it with `motionctl train "
-           "configs/eval/evaluator_smoke.yaml` (or point eval.evaluator at a finished evaluator run)",
-           run_dir, p.string());
-  TrainJobConfig job;
-  parse_config(compose_config((dir / "config.yaml").string()), job);
-  if (job.model.type != "t2m_evaluator")
-    fail("'{}' is a run of model type '{}', not an evaluator (t2m_evaluator)", run_dir, job.model.type);
+  TrainedRun run = open_trained_run(
+      run_dir, {"evaluator", {"t2m_evaluator"}, {"vocab.txt", "evaluator_meta.yaml"},
+                "train one with `motionctl train configs/eval/evaluator_smoke.yaml` (or point eval.evaluator at its "
+                "training config)"});
   T2MEvaluator ev;
   ev.run_dir_ = run_dir;
-  ev.cfg_ = job.model.as<T2MEvaluatorConfig>();
-  std::vector<std::string> words;
-  {
-    std::ifstream f(dir / "outputs" / "vocab.txt");
-    for (std::string w; std::getline(f, w);) words.push_back(w);
-  }
-  ev.vocab_ = std::make_shared<TextVocab>(words, (dir / "outputs" / "vocab.txt").string());
-  YAML::Node meta;
-  try {
-    meta = YAML::LoadFile((dir / "outputs" / "evaluator_meta.yaml").string());
+  ev.cfg_ = run.model.as<T2MEvaluatorConfig>();
+  ev.vocab_ = std::make_shared<TextVocab>(run.vocab_words(), run.output("vocab.txt").string());
+  int feature_dim = 0;
+  run.read_meta("evaluator_meta.yaml", [&](const YAML::Node& meta) {
     ev.fps_ = meta["fps"].as<double>();
     ev.skeleton_ = skeleton_from_yaml_text(meta["skeleton"].as<std::string>(), run_dir + "/outputs/evaluator_meta.yaml");
-  } catch (const YAML::Exception& e) {
-    fail("'{}/outputs/evaluator_meta.yaml' is corrupt: {}", run_dir, e.what());
-  }
-  ev.net_ = std::make_shared<T2MEvaluatorNetImpl>(ev.vocab_->size(), meta["feature_dim"].as<int>(), ev.cfg_);
-  try {
-    torch::serialize::InputArchive ar;
-    ar.load_from(final_pt.string());
-    ev.net_->load(ar);
-  } catch (const std::exception&) {  // c10::Error, or torch::jit::ErrorReport on a damaged file
-    fail("evaluator checkpoint '{}' is unreadable or does not match its config.yaml", final_pt.string());
-  }
+    feature_dim = meta["feature_dim"].as<int>();
+  });
+  ev.net_ = std::make_shared<T2MEvaluatorNetImpl>(ev.vocab_->size(), feature_dim, ev.cfg_);
+  run.load_weights(*ev.net_);
   ev.net_->eval();
   return ev;
 }

@@ -78,6 +78,7 @@ struct TableConfig : Config {
   int multimodality_generations = 10;  // generations per text in that pass
   std::string foot_skating = "padded_196";  // which convention the foot_skating column shows
   std::vector<std::string> differences;     // remaining differences from the paper's protocol (caption)
+  std::vector<std::string> derived;         // column=metric/row: computed from another metric, not measured
   void visit(FieldVisitor& v) override {
     v("id", id, "table id, e.g. projflow/table1");
     v("title", title, "caption");
@@ -95,13 +96,19 @@ struct TableConfig : Config {
       "/ 195) or valid_frames (the clip's own frames); the other one is shown as a labelled extra column",
       one_of({"padded_196", "valid_frames"}));
     v("differences", differences, "differences from the paper's protocol that remain (listed in the caption)");
+    v("derived", derived,
+      "derived columns, each column=metric/row: every replicate's metric divided by the mean of that metric in row "
+      "`row` (Table VII: relative_cost=time_per_sample/rs0); the column must be listed in columns");
   }
-  std::string validate() const override {
-    if (id.empty()) return "table.id is empty";
-    if (columns.empty()) return "table.columns is empty: name at least one metric";
-    return "";
-  }
+  std::string validate() const override;
 };
+
+// One `table.derived` entry, column=metric/row.
+struct DerivedColumn {
+  std::string column, metric, base_row;
+};
+// UserError naming `what` and the entry when it is not column=metric/row.
+DerivedColumn parse_derived_column(const std::string& entry, const std::string& what);
 
 // One entry of `rows:`.
 struct RowConfig : Config {

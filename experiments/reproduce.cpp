@@ -123,15 +123,21 @@ ReproduceResult reproduce(const ReproduceOptions& opt) {
       }
     }
     tr.spec.rows = kept;
-    // Table VII's cost column: time per sample relative to the table's first row.
-    const auto& cols = spec.table.columns;
-    if (std::find(cols.begin(), cols.end(), "relative_cost") != cols.end() && !tr.rows.empty() &&
-        tr.rows.front().values.count("time_per_sample")) {
-      const double base = summarize(tr.rows.front().values.at("time_per_sample")).mean;
+    // Derived columns (table.derived, e.g. Table VII's cost relative to the generator
+    // alone): computed from the measured metric once every row is in. Without the base
+    // row (it failed) or its metric the column stays empty.
+    for (const auto& d : spec.table.derived) {
+      const DerivedColumn dc = parse_derived_column(d, spec.file);
+      auto base_row = std::find_if(tr.rows.begin(), tr.rows.end(), [&](const RowResult& r) {
+        return r.row_id == dc.base_row && r.values.count(dc.metric) && !r.values.at(dc.metric).empty();
+      });
+      if (base_row == tr.rows.end()) continue;
+      const double base = summarize(base_row->values.at(dc.metric)).mean;
       for (auto& r : tr.rows) {
-        auto& rc = r.values["relative_cost"];
-        rc.clear();
-        for (double t : r.values["time_per_sample"]) rc.push_back(t / std::max(base, 1e-12));
+        if (!r.values.count(dc.metric)) continue;
+        auto& out = r.values[dc.column];
+        out.clear();
+        for (double v : r.values.at(dc.metric)) out.push_back(v / std::max(base, 1e-12));
       }
     }
     if (pf.profile.health) tr.health = health.table_line(tr);  // before the timing: not the table's cost

@@ -25,6 +25,7 @@
 #include "experiments/row_evaluator.h"
 #include "samplers/motion_generator.h"
 #include "train/pretrained.h"
+#include "train/dependencies.h"
 #include "train/train_job.h"
 #include "train/trainer.h"
 
@@ -39,6 +40,28 @@ ProfileFile load_profile(const std::string& name_or_file) {
     fail("profile '{}' not found ({} does not exist); known profiles are the files in configs/profile/", name_or_file,
          file);
   return load_job<ProfileFile>(file, {});
+}
+
+std::string TableConfig::validate() const {
+  if (id.empty()) return "table.id is empty";
+  if (columns.empty()) return "table.columns is empty: name at least one metric";
+  for (const auto& d : derived) {
+    const auto eq = d.find('='), slash = d.find('/', eq == std::string::npos ? 0 : eq);
+    if (eq == std::string::npos || eq == 0 || slash == std::string::npos || slash == eq + 1 || slash + 1 == d.size())
+      return fmt::format("table.derived: '{}' is not column=metric/row (e.g. relative_cost=time_per_sample/rs0)", d);
+    if (std::find(columns.begin(), columns.end(), d.substr(0, eq)) == columns.end())
+      return fmt::format("table.derived: '{}' derives column '{}', which table.columns does not list", d,
+                         d.substr(0, eq));
+  }
+  return "";
+}
+
+DerivedColumn parse_derived_column(const std::string& entry, const std::string& what) {
+  const auto eq = entry.find('=');
+  const auto slash = entry.find('/', eq == std::string::npos ? 0 : eq);
+  if (eq == std::string::npos || slash == std::string::npos)
+    fail("{}: table.derived entry '{}' is not column=metric/row", what, entry);
+  return {entry.substr(0, eq), entry.substr(eq + 1, slash - eq - 1), entry.substr(slash + 1)};
 }
 
 TableSpec load_table_spec(const std::string& file) {
@@ -76,6 +99,12 @@ TableSpec load_table_spec(const std::string& file) {
     parse_config(config_from_string(YAML::Dump(root["rows"][i]), fmt::format("{} rows[{}]", file, i)), row);
     if (!ids.insert(row.id).second) fail("{}: rows[{}] repeats the row id '{}'; ids must be unique", file, i, row.id);
     spec.rows.push_back(row);
+  }
+  for (const auto& d : spec.table.derived) {
+    const DerivedColumn dc = parse_derived_column(d, file);
+    if (!ids.count(dc.base_row))
+      fail("{}: table.derived '{}' divides by row '{}', which is not a row of the table (rows: {})", file, d,
+           dc.base_row, fmt::join(ids, ", "));
   }
   return spec;
 }
@@ -445,6 +474,7 @@ RowResult run_row(const ProfileFile& pf, const TableSpec& table, const RowConfig
   GeneratorContext ctx;
   ctx.device = setup_torch(rc);
   take_trained_runs();
+  resolve_dependencies(rr.generator);
   std::unique_ptr<MotionGenerator> gen = as_generator(rr.generator).make(ctx);
   result.components = take_trained_runs();
   result.generator_description = gen->describe();

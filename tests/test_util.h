@@ -1,4 +1,6 @@
-// Shared helpers for tests: temp dirs, running the motionctl binary.
+// Shared helpers for tests: temp dirs, running the motionctl binary, reading files,
+// catching UserErrors. Helpers of one layer live beside its tests
+// (tests/<layer>/*_test_util.h) and are shared from there, never copied.
 #pragma once
 #include <sys/wait.h>
 #include <unistd.h>
@@ -8,8 +10,13 @@
 #include <fstream>
 #include <sstream>
 #include <string>
+#include <vector>
 
 #include <fmt/format.h>
+
+#include <catch2/catch.hpp>
+
+#include "core/error.h"
 
 namespace mc::test {
 
@@ -72,6 +79,31 @@ inline std::string metrics_without_wall(const fs::path& p) {
     out << kept << "\n";
   }
   return out.str();
+}
+
+// The message of the UserError `f` throws; "" when it throws nothing, and
+// "<not a UserError: ...>" for any other exception (so a Contains check fails).
+template <class F>
+std::string user_error_of(F&& f) {
+  try {
+    f();
+  } catch (const mc::UserError& e) {
+    return e.what();
+  } catch (const std::exception& e) {
+    return std::string("<not a UserError: ") + e.what() + ">";
+  } catch (...) {
+    return "<not a UserError>";
+  }
+  return "";
+}
+
+// Runs `f`, expecting a UserError whose message contains every fragment.
+template <class F>
+void expect_user_error(F&& f, const std::vector<std::string>& fragments) {
+  const std::string msg = user_error_of(std::forward<F>(f));
+  INFO("message: " << msg);
+  REQUIRE_FALSE(msg.empty());
+  for (const auto& frag : fragments) CHECK(msg.find(frag) != std::string::npos);
 }
 
 }  // namespace mc::test

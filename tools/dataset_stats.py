@@ -46,7 +46,8 @@ def compute(motion):
     per_clip = np.array([len(cs) for cs in motion.captions])
 
     if motion.vocab is not None:
-        vocab_size, vocab_source = len(motion.vocab), "vocab dataset"
+        # Words only: the four special tokens (<pad> <unk> <sos> <eos>) are not counted.
+        vocab_size, vocab_source = len(motion.vocab) - len(motionio.VOCAB_SPECIALS), "vocab dataset"
     else:
         # Mirror the converter: vocabulary of the train captions when there is a train split.
         source = [i for i in range(n) if motion.split[i] == "train"] or list(range(n))

@@ -4,6 +4,7 @@ frontiers, the ProjFlow trajectory overlay and lifting example, training curves,
 
 import argparse
 import dataclasses
+import json
 import math
 import os
 import re
@@ -18,6 +19,8 @@ import matplotlib
 matplotlib.use("Agg")
 matplotlib.rcParams["text.parse_math"] = False  # captions, labels and ids may contain "$"
 import matplotlib.pyplot as plt  # noqa: E402
+import matplotlib.collections  # noqa: E402
+import matplotlib.lines  # noqa: E402
 from matplotlib import ticker  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
@@ -43,6 +46,9 @@ def parse_args(argv):
     p.add_argument("--frames", type=int, default=6, help="poses per stick-figure strip (default 6)")
     p.add_argument("--no-paper", action="store_true",
                    help="leave the paper's published points out of the frontier plots")
+    p.add_argument("--manifest", default=None,
+                   help="also write a JSON file with each figure's size and panel boxes (pixels) and where "
+                        "their poses, paths and curves landed (for tests and CI)")
     args = p.parse_args(argv)
     if args.frames < 1:
         p.error("--frames must be >= 1")
@@ -258,7 +264,63 @@ def footer(fig, info):
     fig.text(0.005, 0.005, info, fontsize=6, color="0.45", ha="left", va="bottom")
 
 
+# Where each figure's panels are and where what they show landed, in PNG pixels (top-left
+# origin), for `--manifest` (the tests check that no panel is empty and every size is bounded).
+MANIFEST = {}
+
+
+def _pixel_box(bbox, fig_h):
+    return [float(bbox.x0), float(fig_h - bbox.y1), float(bbox.x1), float(fig_h - bbox.y0)]
+
+
+def subject_points(artist):
+    """Data points of a line, a line collection or a scatter ([N, 2] in the artist's coordinates);
+    3D lines give their projection after a draw."""
+    if isinstance(artist, matplotlib.lines.Line2D):
+        return np.asarray(artist.get_xydata(), dtype=np.float64).reshape(-1, 2)
+    if isinstance(artist, matplotlib.collections.LineCollection):
+        segs = artist.get_segments()
+        return np.concatenate([np.asarray(g, dtype=np.float64).reshape(-1, 2) for g in segs]) if segs else None
+    if isinstance(artist, matplotlib.collections.PathCollection):
+        return np.asarray(artist.get_offsets(), dtype=np.float64).reshape(-1, 2)
+    return None
+
+
+def panel_manifest(fig):
+    """[{box, subject, title}] of every visible panel: the axes' box and the part of its 'subject'
+    artists (gid 'subject': poses, paths, curves) that lies inside it (None when nothing does)."""
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    fig_h = fig.get_size_inches()[1] * DPI
+    panels = []
+    for ax in fig.get_axes():
+        if not ax.get_visible():
+            continue
+        box = ax.get_window_extent(renderer)
+        inside = None
+        for artist in ax.findobj(lambda a: a.get_gid() == "subject"):
+            pts = subject_points(artist)
+            if pts is None or not len(pts):
+                continue
+            pts = artist.get_transform().transform(pts)
+            keep = ((pts[:, 0] >= box.x0) & (pts[:, 0] <= box.x1) & (pts[:, 1] >= box.y0) & (pts[:, 1] <= box.y1)
+                    & np.isfinite(pts).all(axis=1))
+            if not keep.any():
+                continue
+            lo, hi = pts[keep].min(axis=0), pts[keep].max(axis=0)
+            inside = [min(inside[0], lo[0]), min(inside[1], lo[1]), max(inside[2], hi[0]), max(inside[3], hi[1])] \
+                if inside else [lo[0], lo[1], hi[0], hi[1]]
+        subject = None if inside is None else [inside[0], fig_h - inside[3], inside[2], fig_h - inside[1]]
+        panels.append({"box": _pixel_box(box, fig_h), "subject": subject, "title": ax.get_title()})
+    return panels
+
+
 def save(fig, path, written):
+    render_motion.check_size(fig, path)
+    if MANIFEST.get("enabled"):
+        w, h = (fig.get_size_inches() * DPI).round().astype(int).tolist()
+        MANIFEST.setdefault("figures", {})[os.path.basename(path)] = {"size": [w, h],
+                                                                     "panels": panel_manifest(fig)}
     motionio.atomic_output(path, lambda tmp: fig.savefig(tmp, format="png", dpi=DPI), suffix=".png")
     plt.close(fig)
     written.append(path)
@@ -348,8 +410,9 @@ def draw_frontiers(tables, info, out, no_paper, written, notes):
             ys = [p[2][0] for p in pts]
             counts = sorted({n for p in pts for n in (p[1][2], p[2][2])})
             n = str(counts[0]) if len(counts) == 1 else f"{counts[0]}-{counts[-1]}"
-            ax.errorbar(xs, ys, xerr=[p[1][1] for p in pts], yerr=[p[2][1] for p in pts], color=c, marker="o",
-                        ms=6, lw=1.6, capsize=3, label=f"{tid} ({n} replicates)", zorder=3)
+            bars = ax.errorbar(xs, ys, xerr=[p[1][1] for p in pts], yerr=[p[2][1] for p in pts], color=c,
+                               marker="o", ms=6, lw=1.6, capsize=3, label=f"{tid} ({n} replicates)", zorder=3)
+            bars.lines[0].set_gid("subject")
             for steps, x, y in pts:
                 ax.annotate(f"RS{steps}", (x[0], y[0]), textcoords="offset points", xytext=(6, 5), fontsize=8,
                             color=c)
@@ -375,34 +438,78 @@ def draw_frontiers(tables, info, out, no_paper, written, notes):
 # --------------------------------------------------------------------------
 # 2. ProjFlow Fig. 4: pelvis paths over the target path.
 
+def informative_sample(rows):
+    """The sample index shown for every row of a table (rows share their tasks): one with
+    controlled entries if any, then the one whose ground-truth root travels farthest (a moving
+    clip says more than a standing one; generated joints stand in when no target is stored),
+    ties to the first."""
+    k_max = min(len(e.lengths) for e in rows)
+    best, best_key = 0, None
+    for k in range(k_max):
+        controlled = any(e.controlled[k, :int(e.lengths[k])].any() for e in rows)
+        travels = []
+        for e in rows:
+            n = int(e.lengths[k])
+            clip = e.target[k, :n] if np.abs(e.target[k, :n]).max() > 0 else e.joints[k, :n]
+            root = clip[:, 0, [0, 2]]
+            travels.append(float(np.linalg.norm(np.diff(root, axis=0), axis=-1).sum()) if n > 1 else 0.0)
+        key = (controlled, float(np.median(travels)))
+        if best_key is None or key > best_key:
+            best, best_key = k, key
+    return best
+
+
+DIVERGED_FACTOR = 3.0  # a row whose view must be this many times the typical one is drawn on its own scale
+
+
+def split_diverged(sizes):
+    """Indices of the rows drawn on their own scale: those needing a view more than DIVERGED_FACTOR
+    times the median row's (a diverged baseline must not shrink every other row to a dot)."""
+    typical = float(np.median(sizes))
+    return {i for i, v in enumerate(sizes) if v > DIVERGED_FACTOR * typical}
+
+
+def square_view(points, margin=0.15, minimum=0.5):
+    """(centre xz, half side) of a square view holding `points` [N, 2]."""
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    return (lo + hi) / 2, max(minimum, float((hi - lo).max()) / 2 * (1 + margin))
+
+
 def draw_trajectory_overlay(examples, info, out, written, notes):
     rows = [e for e in examples.get("projflow/table1", []) if e.row_id.startswith("pelvis/")]
     if not rows:
         notes.append("trajectory_overlay: no /examples/projflow|table1 rows named 'pelvis|...'")
         return
+    k = informative_sample(rows)
     paths = []
     for e in rows:
-        n = int(e.lengths[0])
-        paths.append((e, e.joints[0, :n, 0][:, [0, 2]], e.target[0, :n, 0][:, [0, 2]],
-                      e.controlled[0, :n, 0].any(axis=-1)))
-    allxz = np.concatenate([np.concatenate([g, t]) for _, g, t, _ in paths])
-    lo, hi = allxz.min(axis=0), allxz.max(axis=0)
-    center, half = (lo + hi) / 2, max(0.5, float((hi - lo).max()) / 2 * 1.1)
-    ncol = min(4, len(rows))
+        n = int(e.lengths[k])
+        paths.append((e, e.joints[k, :n, 0][:, [0, 2]], e.target[k, :n, 0][:, [0, 2]],
+                      e.controlled[k, :n, 0].any(axis=-1)))
+    # One view for the rows that follow the task, their own for the ones that ran away.
+    views = [square_view(np.concatenate([g, t])) for _, g, t, _ in paths]
+    diverged = split_diverged([v[1] for v in views])
+    common = square_view(np.concatenate([np.concatenate([g, t]) for i, (_, g, t, _) in enumerate(paths)
+                                         if i not in diverged]))
+    panel = 3.6
+    ncol = min(len(rows), max(4, math.ceil(len(rows) / 9)), int((render_motion.MAX_PX / DPI - 0.2) // panel))
     nrow = math.ceil(len(rows) / ncol)
-    fig, axes = plt.subplots(nrow, ncol, figsize=(3.6 * ncol, 3.7 * nrow + 0.4), squeeze=False)
+    fig, axes = plt.subplots(nrow, ncol, figsize=(panel * ncol, (panel + 0.1) * nrow + 0.5), squeeze=False)
     for ax in axes.flat[len(rows):]:
         ax.set_visible(False)
-    for ax, (e, gen, tgt, ctrl) in zip(axes.flat, paths):
-        ax.plot(tgt[:, 0], tgt[:, 1], color=TARGET_COLOR, ls=":", lw=2.0, label="target path", zorder=1)
-        ax.plot(gen[:, 0], gen[:, 1], color=GEN_COLOR, lw=1.8, label="generated pelvis", zorder=2)
+    for i, (ax, (e, gen, tgt, ctrl)) in enumerate(zip(axes.flat, paths)):
+        ax.plot(tgt[:, 0], tgt[:, 1], color=TARGET_COLOR, ls=":", lw=2.0, label="target path", zorder=1, gid="subject")
+        ax.plot(gen[:, 0], gen[:, 1], color=GEN_COLOR, lw=1.8, label="generated pelvis", zorder=2, gid="subject")
         ax.scatter(tgt[ctrl, 0], tgt[ctrl, 1], s=14, facecolors="none", edgecolors="k", lw=0.8,
                    label="controlled frames", zorder=3)
         ax.plot(*gen[0], marker="o", color=GEN_COLOR, ms=5, zorder=4)
         ax.annotate("start", gen[0], textcoords="offset points", xytext=(4, 4), fontsize=7, color="0.3")
-        err = np.linalg.norm(e.joints[0, :len(ctrl), 0] - e.target[0, :len(ctrl), 0], axis=-1)[ctrl]
+        err = np.linalg.norm(e.joints[k, :len(ctrl), 0] - e.target[k, :len(ctrl), 0], axis=-1)[ctrl]
         stat = f"pelvis error at controlled frames: {100 * err.mean():.2f} cm" if err.size else "no controlled frames"
-        ax.set_title(f"{wrap(e.label, 40)}\n{stat}", fontsize=8)
+        center, half = views[i] if i in diverged else common
+        if i in diverged:
+            stat += f"\nown scale ({2 * half:.0f} m across; others {2 * common[1]:.1f} m): diverged"
+        ax.set_title(f"{wrap(e.label, 40)}\n{stat}", fontsize=8, color="#b00000" if i in diverged else "k")
         # x grows to the left: with z up the page this is the view from above (Y toward the reader),
         # so left turns look like left turns.
         ax.set_xlim(center[0] + half, center[0] - half)
@@ -413,7 +520,7 @@ def draw_trajectory_overlay(examples, info, out, written, notes):
         ax.grid(alpha=0.3)
     axes.flat[0].legend(fontsize=7, loc="best")
     e0 = rows[0]
-    fig.suptitle(wrap(f"Pelvis trajectory control (first sample): \"{e0.caption(0)}\"", 110), fontsize=10)
+    fig.suptitle(wrap(f"Pelvis trajectory control (sample {k}): \"{e0.caption(k)}\"", 110), fontsize=10)
     footer(fig, info)
     fig.tight_layout(rect=(0, 0.02, 1, 0.97))
     save(fig, os.path.join(out, "trajectory_overlay.png"), written)
@@ -457,7 +564,7 @@ def draw_lifting(examples, skeleton, info, out, written, notes):
     # Frames where most joints are observed are key poses (the initial 2D keypose of Sketch2Anim).
     for i, t in enumerate(np.flatnonzero(obs.sum(axis=1) >= max(2, obs.shape[1] // 2))):
         draw_bones_2d(ax2, tgt2[t], parents, color=TARGET_COLOR, lw=2.2, ls="--", zorder=1)
-        draw_bones_2d(ax2, gen2[t], parents, color=GEN_COLOR, lw=1.2, zorder=2)
+        draw_bones_2d(ax2, gen2[t], parents, color=GEN_COLOR, lw=1.2, zorder=2, gid="subject")
         top = tgt2[t, np.argmax(tgt2[t, :, 1])]
         ax2.annotate(f"key pose t={t}", top, textcoords="offset points", xytext=(0, 6), fontsize=7,
                      color="0.3", ha="center")
@@ -469,7 +576,8 @@ def draw_lifting(examples, skeleton, info, out, written, notes):
     for i, j in enumerate(traj_joints[:10]):
         c = cmap(i % 10)
         ts = np.flatnonzero(obs[:, j])
-        ax2.plot(gen2[:, j, 0], gen2[:, j, 1], color=c, lw=1.6, zorder=3, label=f"{names[j]}: generated, projected")
+        ax2.plot(gen2[:, j, 0], gen2[:, j, 1], color=c, lw=1.6, zorder=3, label=f"{names[j]}: generated, projected",
+                 gid="subject")
         ax2.scatter(tgt2[ts, j, 0], tgt2[ts, j, 1], s=16, marker="x", color="k", lw=0.8, zorder=4,
                     label="2D targets" if i == 0 else None)
     if len(traj_joints) > 10:
@@ -493,7 +601,7 @@ def draw_lifting(examples, skeleton, info, out, written, notes):
         for c, p in enumerate(parents):
             if p >= 0:
                 ax3.plot([px[t, p], px[t, c]], [py[t, p], py[t, c]], [pz[t, p], pz[t, c]], color=bone_col[c],
-                         lw=1.8, alpha=alpha)
+                         lw=1.8, alpha=alpha, gid="subject")
         ax3.text(px[t, 0], py[t, 0], pz[t].max() + 0.08, f"t={t}", fontsize=7, color="0.3")
     floor = min(0.0, float(pz.min()))
     ax3.plot(px[:, 0], py[:, 0], np.full(n, floor), color="0.55", lw=1.0)
@@ -549,35 +657,41 @@ def draw_training(f, path, info, out, written, notes):
     if not comps:
         notes.append("training_curves: no /training component with step and loss")
         return
+    # Fixed 5.0 x 3.8 in panels, three to a row; a page holds as many rows as fit in MAX_PX.
     ncol = min(3, len(comps))
-    nrow = math.ceil(len(comps) / ncol)
-    fig, axes = plt.subplots(nrow, ncol, figsize=(5.0 * ncol, 3.8 * nrow + 0.4), squeeze=False)
-    for ax in axes.flat[len(comps):]:
-        ax.set_visible(False)
-    for ax, (name, run_dir, cols) in zip(axes.flat, comps):
-        step = cols["step"]
-        parts = ["loss"] + sorted(c for c in cols if c not in NOT_LOSS_COLUMNS and c != "loss")
-        drawn = 0
-        for c in parts:
-            v = np.where(np.isfinite(cols[c]) & (cols[c] > 0), cols[c], np.nan)  # log axis: positive only
-            if np.isnan(v).all():
-                continue
-            main = c == "loss"
-            ax.plot(step, v, lw=2.0 if main else 1.0, color="k" if main else None, alpha=1.0 if main else 0.85,
-                    label=c, zorder=3 if main else 2)
-            drawn += 1
-        if drawn:
-            ax.set_yscale("log")
-            plain_log_labels(ax)
-        ax.set_title(f"{name}\n{textwrap.shorten(run_dir, 60)}" if run_dir else name, fontsize=9)
-        ax.set_xlabel("step")
-        ax.set_ylabel("loss (log)")
-        ax.grid(alpha=0.3, which="both")
-        ax.legend(fontsize=7, loc="best")
-    fig.suptitle("Training losses (mean over each logging interval)", fontsize=10)
-    footer(fig, info)
-    fig.tight_layout(rect=(0, 0.02, 1, 0.97))
-    save(fig, os.path.join(out, "training_curves.png"), written)
+    per_page = ncol * max(1, int((render_motion.MAX_PX / DPI - 0.6) // 3.8))
+    pages = [comps[i:i + per_page] for i in range(0, len(comps), per_page)]
+    for page_no, page in enumerate(pages):
+        nrow = math.ceil(len(page) / ncol)
+        fig, axes = plt.subplots(nrow, ncol, figsize=(5.0 * ncol, 3.8 * nrow + 0.5), squeeze=False)
+        for ax in axes.flat[len(page):]:
+            ax.set_visible(False)
+        for ax, (name, run_dir, cols) in zip(axes.flat, page):
+            step = cols["step"]
+            parts = ["loss"] + sorted(c for c in cols if c not in NOT_LOSS_COLUMNS and c != "loss")
+            drawn = 0
+            for c in parts:
+                v = np.where(np.isfinite(cols[c]) & (cols[c] > 0), cols[c], np.nan)  # log axis: positive only
+                if np.isnan(v).all():
+                    continue
+                main = c == "loss"
+                ax.plot(step, v, lw=2.0 if main else 1.0, color="k" if main else None,
+                        alpha=1.0 if main else 0.85, label=c, zorder=3 if main else 2, gid="subject")
+                drawn += 1
+            if drawn:
+                ax.set_yscale("log")
+                plain_log_labels(ax)
+            ax.set_title(f"{name}\n{textwrap.shorten(run_dir, 60)}" if run_dir else name, fontsize=9)
+            ax.set_xlabel("step")
+            ax.set_ylabel("loss (log)")
+            ax.grid(alpha=0.3, which="both")
+            ax.legend(fontsize=7, loc="best")
+        more = f" (part {page_no + 1} of {len(pages)})" if len(pages) > 1 else ""
+        fig.suptitle(f"Training losses (mean over each logging interval){more}", fontsize=10)
+        footer(fig, info)
+        fig.tight_layout(rect=(0, 0.02, 1, 0.97))
+        suffix = f"_{page_no + 1}" if page_no else ""
+        save(fig, os.path.join(out, f"training_curves{suffix}.png"), written)
 
 
 # --------------------------------------------------------------------------
@@ -597,6 +711,29 @@ def snap_to_controlled(shown, controlled_frames, length):
     return np.array(sorted(set(out)))
 
 
+STRIP_HEAD_IN, STRIP_BLOCK_TITLE_IN, STRIP_LEFT_IN, STRIP_BLOCK_GAP_IN = 0.75, 0.42, 0.5, 0.3
+STRIP_ROWS_PER_COLUMN = 8  # strips stacked before a second column of strips starts
+
+
+def strip_pages(n_rows, block_w, block_h, head, foot):
+    """Blocks (one strip each) laid out in columns then pages so that no figure exceeds MAX_PX:
+    [(first, count, columns, rows per column)]. Columns are added before the figure grows past
+    STRIP_ROWS_PER_COLUMN strips; pages only when even the widest grid is full."""
+    limit = render_motion.MAX_PX / DPI
+    max_cols = max(1, int((limit - 0.1) // block_w))
+    max_rows = max(1, int((limit - head - foot) // block_h))
+    pages, first = [], 0
+    while first < n_rows:
+        left = n_rows - first
+        cols = min(max_cols, max(1, math.ceil(left / STRIP_ROWS_PER_COLUMN)))
+        per_col = min(max_rows, math.ceil(left / cols))
+        count = min(left, cols * per_col)
+        cols = math.ceil(count / per_col)
+        pages.append((first, count, cols, per_col))
+        first += count
+    return pages
+
+
 def draw_strips(examples, skeleton, info, out, frames, fps, written, notes):
     if not examples:
         notes.append("strips_*: no /examples group")
@@ -606,6 +743,8 @@ def draw_strips(examples, skeleton, info, out, frames, fps, written, notes):
         return
     parents = skeleton["parents"]
     colors = render_motion.bone_colors({"names": skeleton["names"]})
+    pw, ph = render_motion.PANEL_W_IN, render_motion.PANEL_H_IN
+    pt, gap = render_motion.PANEL_TITLE_IN, render_motion.PANEL_GAP_IN
     for tid, rows in sorted(examples.items()):
         if not rows:
             continue
@@ -613,40 +752,67 @@ def draw_strips(examples, skeleton, info, out, frames, fps, written, notes):
             notes.append(f"strips_{safe_name(tid)}: examples have {rows[0].joints.shape[2]} joints, "
                          f"/skeleton {len(parents)}")
             continue
-        clips = [e.joints[0, :int(e.lengths[0])] for e in rows]
+        k = informative_sample(rows)
+        clips = [e.joints[k, :int(e.lengths[k])] for e in rows]
         views = [render_motion.view_axis(c) for c in clips]
-        extents = np.array([render_motion.strip_extent(c, u) for c, u in zip(clips, views)])
-        extent = (extents[:, 0].max(), extents[:, 1].min(), extents[:, 2].max())  # one scale for all panels
-        panel_h = 2.2
-        panel_w = panel_h * 2 * extent[0] / (extent[2] - extent[1])
+        # Each row fitted to the fixed panel; rows share the scale of the typical row unless
+        # they need far more room (diverged), which get their own and say so.
+        own = [render_motion.fit_extent(render_motion.strip_extent(c, u)) for c, u in zip(clips, views)]
+        diverged = split_diverged([render_motion.extent_size(x) for x in own])
+        normal = [x for i, x in enumerate(own) if i not in diverged]
+        shared = (max(x[0] for x in normal), min(x[1] for x in normal), max(x[2] for x in normal))
+        shared = render_motion.fit_extent(shared)
         ncol = min(frames, max(len(c) for c in clips))
-        fig = plt.figure(figsize=(max(7.0, panel_w * ncol + 0.9), (panel_h + 0.85) * len(rows) + 0.6),
-                         layout="constrained")
-        fig.get_layout_engine().set(h_pad=0.06, hspace=0.02)
-        subfigs = np.atleast_1d(fig.subfigures(len(rows), 1))
-        for sub, e, clip, u in zip(subfigs, rows, clips, views):
-            n = len(clip)
-            ctrl = e.controlled[0, :n].any(axis=-1)                     # [T, J]
-            shown = snap_to_controlled(render_motion.strip_frames(n, ncol), np.flatnonzero(ctrl.any(axis=1)), n)
-            axes = np.atleast_1d(sub.subplots(1, ncol))
-            for ax in axes[len(shown):]:
-                ax.set_visible(False)
-            # The ground-truth clip the task came from, faint behind the sample, and the hard 3D
-            # constraints of the shown frame (targets of the controlled joints).
-            th, tv, td = render_motion.side_view(e.target[0, :n], u)
-            for ax, t in zip(axes, shown):
-                render_motion.draw_pose(ax, th[t], tv[t], td[t], parents, ["0.8"] * len(parents), lw=1.4,
-                                        zorder=1.5)
-                cj = np.flatnonzero(ctrl[t])
-                if cj.size:
-                    ax.scatter(th[t, cj], tv[t, cj], s=30, facecolors="none", edgecolors="k", lw=0.9, zorder=4)
-            render_motion.draw_strip(axes, clip, parents, colors, shown, fps, u, extent)
-            sub.suptitle(textwrap.shorten(f"{e.label}: \"{e.caption(0)}\"", 160), x=0.01, ha="left",
-                         fontsize=9, fontweight="bold")
-        fig.suptitle(f"{tid}: first sample of each row\n(grey: ground-truth clip; circles: controlled joints at "
-                     "that frame; blue = left, red = right)", fontsize=9)
-        footer(fig, info)
-        save(fig, os.path.join(out, f"strips_{safe_name(tid)}.png"), written)
+        per_line, lines = render_motion.panel_lines(ncol)
+        block_w = STRIP_LEFT_IN + per_line * (pw + gap) + STRIP_BLOCK_GAP_IN
+        block_h = STRIP_BLOCK_TITLE_IN + lines * (ph + pt + gap) + 0.1
+        pages = strip_pages(len(rows), block_w, block_h, STRIP_HEAD_IN, 0.25)
+        for page_no, (first, count, cols, per_col) in enumerate(pages):
+            fig_w = cols * block_w + 0.1
+            fig_h = STRIP_HEAD_IN + per_col * block_h + 0.25
+            fig = plt.figure(figsize=(fig_w, fig_h), dpi=DPI)
+            for slot in range(count):
+                r = first + slot
+                e, clip, u = rows[r], clips[r], views[r]
+                left = (slot // per_col) * block_w + STRIP_LEFT_IN
+                top = STRIP_HEAD_IN + (slot % per_col) * block_h + STRIP_BLOCK_TITLE_IN
+                axes = render_motion.strip_axes(fig, left, top, per_line, lines, fig_w, fig_h)
+                n = len(clip)
+                ctrl = e.controlled[k, :n].any(axis=-1)                     # [T, J]
+                shown = snap_to_controlled(render_motion.strip_frames(n, ncol), np.flatnonzero(ctrl.any(axis=1)), n)
+                for ax in axes[len(shown):]:
+                    ax.set_visible(False)
+                # The ground-truth clip the task came from, faint behind the sample, and the hard 3D
+                # constraints of the shown frame (targets of the controlled joints).
+                th, tv, td = render_motion.side_view(e.target[k, :n], u)
+                for ax, t in zip(axes, shown):
+                    render_motion.draw_pose(ax, th[t], tv[t], td[t], parents, ["0.8"] * len(parents), lw=1.4,
+                                            zorder=1.5, subject=False)
+                    cj = np.flatnonzero(ctrl[t])
+                    if cj.size:
+                        ax.scatter(th[t, cj], tv[t, cj], s=30, facecolors="none", edgecolors="k", lw=0.9, zorder=4)
+                extent = "per_panel" if r in diverged else shared
+                render_motion.draw_strip(axes[:len(shown)], clip, parents, colors, shown, fps, u, extent,
+                                         ylabel_axes=[axes[i * per_line] for i in range(lines)])
+                title = f"{e.label}: \"{e.caption(k)}\""
+                width = int(12 * (block_w - STRIP_BLOCK_GAP_IN))
+                color = "k"
+                if r in diverged:
+                    title = textwrap.shorten(title, width=max(20, width - 60))
+                    title += (f"  [diverged: needs a {render_motion.extent_size(own[r]):.0f} m view, the others "
+                              f"{render_motion.extent_size(shared):.1f} m; each panel zoomed to its own pose]")
+                    color = "#b00000"
+                else:
+                    title = textwrap.shorten(title, width=width)
+                fig.text((left - STRIP_LEFT_IN + 0.1) / fig_w, 1.0 - (top - STRIP_BLOCK_TITLE_IN + 0.08) / fig_h,
+                         title, fontsize=8.5, fontweight="bold", ha="left", va="top", color=color)
+            more = f" (part {page_no + 1} of {len(pages)})" if len(pages) > 1 else ""
+            fig.suptitle(f"{tid}: sample {k} of each row{more}\n(grey: ground-truth clip; circles: controlled "
+                         "joints at that frame; blue = left, red = right; one scale unless marked)",
+                         fontsize=9, y=1.0 - 0.08 / fig_h, va="top")
+            footer(fig, info)
+            suffix = f"_{page_no + 1}" if page_no else ""
+            save(fig, os.path.join(out, f"strips_{safe_name(tid)}{suffix}.png"), written)
 
 
 # --------------------------------------------------------------------------
@@ -654,6 +820,8 @@ def draw_strips(examples, skeleton, info, out, frames, fps, written, notes):
 def main(argv=None):
     args = parse_args(sys.argv[1:] if argv is None else argv)
     written, notes = [], []
+    MANIFEST.clear()
+    MANIFEST["enabled"] = bool(args.manifest)
     try:
         with open_results(args.file) as f:
             tables = read_tables(f, args.file)
@@ -678,6 +846,11 @@ def main(argv=None):
             draw_strips(examples, skeleton, info, args.out, args.frames, fps, written, notes)
     except (ResultsError, motionio.MotionFileError) as e:
         motionio.fail(str(e))
+    if args.manifest:
+        def write_manifest(tmp):
+            with open(tmp, "w") as fh:
+                json.dump(MANIFEST.get("figures", {}), fh, indent=1)
+        motionio.atomic_output(args.manifest, write_manifest)
     for path in written:
         print(path)
     for note in notes:

@@ -14,7 +14,7 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import motionio  # noqa: E402
 
-VERSION = "1.0"
+VERSION = "1.1"  # 1.1: vocabulary with <pad> <unk> <sos> <eos> by frequency; std floored as in C++
 FPS = 20.0  # HumanML3D is resampled to 20 fps; caption spans are in seconds
 
 
@@ -108,10 +108,8 @@ def collect_clips(args, skeleton):
     seen = {}       # source id -> split file it came from
     report = {"too_short": 0, "cropped": 0, "spans_added": 0, "spans_dropped": 0,
               "mirror_dropped": 0, "no_caption": 0, "non_finite": []}
-    train_sum = np.zeros(3)
-    train_sumsq = np.zeros(3)
-    train_count = 0
-    train_words = set()
+    train_moments = motionio.JointMoments()
+    train_captions = []
 
     for split in args.splits:
         split_file = os.path.join(args.root, split + ".txt")
@@ -169,20 +167,16 @@ def collect_clips(args, skeleton):
                 c["split"] = split
                 clips.append(c)
                 if split == "train":
-                    frames = data[c["start"]:c["end"]].reshape(-1, 3).astype(np.float64)
-                    train_sum += frames.sum(axis=0)
-                    train_sumsq += (frames * frames).sum(axis=0)
-                    train_count += frames.shape[0]
-                    for cap in c["captions"]:
-                        train_words.update(motionio.caption_words(cap))
+                    train_moments.add(data[c["start"]:c["end"]])
+                    train_captions.extend(c["captions"])
 
     stats = vocab = None
-    if train_count:
-        mean = train_sum / train_count
-        std = np.sqrt(np.maximum(train_sumsq / train_count - mean * mean, 0.0))
-        stats = {"joint_mean": mean.astype(np.float32), "joint_std": std.astype(np.float32),
-                 "feature_layout": "none"}
-        vocab = sorted(train_words)
+    if train_moments.count:
+        # Joint statistics as the C++ side computes them (population std floored at 1e-4);
+        # no feature statistics: motionctl computes those from the train split with its own
+        # feature code when a component needs them (docs/formats.md, "Statistics").
+        stats = dict(train_moments.stats(), feature_layout="none")
+        vocab = motionio.build_vocab(train_captions)
     return clips, stats, vocab, report
 
 
@@ -236,7 +230,8 @@ def convert(args, argv):
     else:
         mean = ", ".join(f"{x:.4f}" for x in stats["joint_mean"])
         std = ", ".join(f"{x:.4f}" for x in stats["joint_std"])
-        print(f"train joint mean ({mean}) std ({std}); vocab {len(vocab)} words")
+        print(f"train joint mean ({mean}) std ({std}); vocab {len(vocab) - len(motionio.VOCAB_SPECIALS)} words "
+              f"+ {len(motionio.VOCAB_SPECIALS)} special tokens")
 
 
 def main(argv=None):

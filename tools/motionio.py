@@ -582,6 +582,8 @@ def read_motion(path: str) -> Motion:
                 stats["feature_std"] = _read_array(f, "stats/feature_std", path, 1, fm.shape).astype(np.float32)
 
         vocab = _read_strings(f, "vocab", path) if "vocab" in f else None
+        if vocab is not None:
+            check_vocab(vocab, path)
 
     return Motion(joints=joints, lengths=lengths, ids=ids, split=split, captions=captions,
                   skeleton=skel, fps=float(fps), labels=labels, provenance=provenance,
@@ -617,6 +619,77 @@ def _read_skeleton(f, path) -> dict:
                                   "skeleton/parents")
     return make_skeleton(name, names, parents, dirs, lengths, chains, roles, yaml_text=yaml_text,
                          source=f"{path}: skeleton")
+
+
+# --------------------------------------------------------------------------
+# The constraints of generated samples (/control, docs/formats.md): what `motionctl generate`
+# gave each sample, targets written out. Read for drawing them (tools/animate.py).
+
+_DEFAULT_FRAMES = {"trajectory": "all", "planar_root": "all", "camera_2d": "all", "relative": "all",
+                   "upper_body_edit": "all", "loop": "ends"}
+
+
+def _item_frames(g, kind, length, where):
+    if "frames" in g:
+        frames = np.asarray(g["frames"][()]).reshape(-1).astype(np.int64)
+    elif _attr_str(g.attrs, "frames") == "all" or ("frames_start" not in g.attrs and
+                                                   _DEFAULT_FRAMES.get(kind) == "all"):
+        frames = np.arange(length)
+    elif "frames_start" in g.attrs:
+        start = int(_attr_number(g.attrs, "frames_start"))
+        stop = int(_attr_number(g.attrs, "frames_stop")) if "frames_stop" in g.attrs else -1
+        step = int(_attr_number(g.attrs, "frames_step")) if "frames_step" in g.attrs else 1
+        frames = np.arange(start, length if stop < 0 else stop, max(1, step))
+    elif kind == "loop":
+        frames = np.array([0, length - 1])
+    else:
+        raise MotionFileError(f"{where}: no frames (keyframe items need a 'frames' dataset)")
+    if len(frames) and (frames.min() < 0 or frames.max() >= length):
+        raise MotionFileError(f"{where}: frames outside 0..{length - 1}")
+    return frames
+
+
+def read_control(path: str, motion: "Motion"):
+    """Per sample of a `generate` output, its constraint items as dicts: type, name, joints
+    (indices), frames (int array), axes (list), values (float array or None), camera (4 floats or
+    None). [] for a file without /control (a dataset) and for an unconstrained sample.
+    MotionFileError naming the item when the group is malformed."""
+    names = {n: i for i, n in enumerate(motion.skeleton["names"])}
+    out = [[] for _ in range(motion.num_clips)]
+    with h5py.File(path, "r") as f:
+        if "control" not in f:
+            return out
+        for i in range(motion.num_clips):
+            key = f"control/sample_{i:06d}"
+            if key not in f:
+                continue
+            groups = sorted((k for k in f[key] if k.startswith("item_")), key=lambda k: int(k[5:]))
+            for k in groups:
+                g, where = f[key][k], f"{path}: /{key}/{k}"
+                kind = _attr_str(g.attrs, "type")
+                joints = list(range(len(names)))
+                if "joints" in g:
+                    raw = g["joints"][()]
+                    joints = []
+                    for j in np.atleast_1d(raw):
+                        if isinstance(j, bytes) or isinstance(j, str):
+                            name = j.decode() if isinstance(j, bytes) else j
+                            if name not in names:
+                                raise MotionFileError(f"{where}: unknown joint '{name}'")
+                            joints.append(names[name])
+                        else:
+                            joints.append(int(j))
+                elif kind == "planar_root":
+                    joints = [0]
+                item = {"type": kind, "name": _attr_str(g.attrs, "name"), "joints": joints,
+                        "frames": _item_frames(g, kind, int(motion.lengths[i]), where),
+                        "axes": [int(a) for a in g["axes"][()]] if "axes" in g else [0, 1, 2],
+                        "values": np.asarray(g["values"][()], dtype=np.float64) if "values" in g else None,
+                        "camera": np.asarray(g["camera"][()], dtype=np.float64) if "camera" in g else None}
+                if kind == "planar_root":
+                    item["axes"] = [0, 2]
+                out[i].append(item)
+    return out
 
 
 def _tmp_sibling(path: str, suffix: str = "") -> str:
@@ -674,6 +747,9 @@ def write_motion(path: str, joints, lengths, ids, split, captions, skeleton: Opt
         raise MotionFileError(f"{path}: clip {empty[0]} ('{ids[empty[0]]}') has no caption")
     if lengths.min() < 1:
         raise MotionFileError(f"{path}: lengths must be >= 1")
+    if vocab is not None:
+        vocab = [str(w) for w in vocab]
+        check_vocab(vocab, path)
 
     if isinstance(joints, np.ndarray):
         if joints.ndim != 4 or joints.shape[0] != n or joints.shape[2:] != (j, 3):
@@ -768,9 +844,83 @@ def write_motion(path: str, joints, lengths, ids, split, captions, skeleton: Opt
                               "and is writable") from None
 
 
+# The vocabulary format both sides read and write (src/data/text_vocab.h, docs/formats.md
+# "Vocabulary"): these four tokens at ids 0-3, then the words of the train captions by
+# frequency, ties in byte order.
+VOCAB_SPECIALS = ("<pad>", "<unk>", "<sos>", "<eos>")
+
+
 def caption_words(text: str) -> List[str]:
-    """Lowercase words of a caption; anything that is not a letter separates words."""
-    return re.findall(r"[^\W\d_]+", text.lower())
+    """Words of a caption exactly as the C++ tokenizer (src/data/text_vocab.cpp) splits them:
+    ASCII letters are lowercased, any byte of a non-ASCII UTF-8 character counts as a letter,
+    every other byte (digits, spaces, punctuation) separates words."""
+    words, current = [], bytearray()
+    for b in text.encode("utf-8"):
+        if 65 <= b <= 90:
+            current.append(b + 32)
+        elif 97 <= b <= 122 or b >= 0x80:
+            current.append(b)
+        elif current:
+            words.append(current.decode("utf-8", "replace"))
+            current = bytearray()
+    if current:
+        words.append(current.decode("utf-8", "replace"))
+    return words
+
+
+def build_vocab(captions: Iterable[str], min_count: int = 1) -> List[str]:
+    """The vocabulary of these captions in the one format: VOCAB_SPECIALS, then words with at
+    least `min_count` occurrences, most frequent first, ties in byte order (TextVocab::build)."""
+    counts: Dict[str, int] = {}
+    for c in captions:
+        for w in caption_words(c):
+            counts[w] = counts.get(w, 0) + 1
+    kept = sorted((w for w, n in counts.items() if n >= min_count),
+                  key=lambda w: (-counts[w], w.encode("utf-8")))
+    return list(VOCAB_SPECIALS) + kept
+
+
+STD_FLOOR = 1e-4  # NormOptions::std_floor (src/data/normalizer.h): a constant axis normalises to 0
+
+
+class JointMoments:
+    """Per-axis mean and population std over every frame and joint of the clips added, as
+    compute_norm_stats (src/data/normalizer.cpp) computes joint_mean/joint_std: float64, std
+    floored at STD_FLOOR. Clips are merged with Chan's pairwise update (each clip's own mean
+    and squared deviations), which is as accurate as the C++ two passes without a second
+    read of the data."""
+
+    def __init__(self):
+        self.count, self.mean, self.m2 = 0, np.zeros(3), np.zeros(3)
+
+    def add(self, clip) -> None:
+        x = np.asarray(clip, dtype=np.float64).reshape(-1, 3)
+        if not len(x):
+            return
+        n, mean = len(x), x.mean(axis=0)
+        m2 = ((x - mean) ** 2).sum(axis=0)
+        total = self.count + n
+        delta = mean - self.mean
+        self.mean = self.mean + delta * (n / total)
+        self.m2 = self.m2 + m2 + delta * delta * (self.count * n / total)
+        self.count = total
+
+    def stats(self) -> dict:
+        std = np.maximum(np.sqrt(self.m2 / self.count), STD_FLOOR)
+        return {"joint_mean": self.mean.astype(np.float32), "joint_std": std.astype(np.float32)}
+
+
+def check_vocab(vocab, where: str) -> None:
+    """MotionFileError unless `vocab` is in the one format (specials first, unique words)."""
+    if list(vocab[:len(VOCAB_SPECIALS)]) != list(VOCAB_SPECIALS):
+        raise MotionFileError(f"{where}: 'vocab' must start with {', '.join(VOCAB_SPECIALS)} (ids 0-3), then the "
+                              f"words (docs/formats.md, Vocabulary); got {list(vocab[:4])}. Build it with "
+                              "motionio.build_vocab(captions) or re-run tools/humanml3d_to_h5.py")
+    seen = set()
+    for w in vocab:
+        if w in seen:
+            raise MotionFileError(f"{where}: 'vocab' lists '{w}' twice; vocabulary words must be unique")
+        seen.add(w)
 
 
 def fail(message: str) -> NoReturn:

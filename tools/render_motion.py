@@ -3,6 +3,7 @@
 optionally, small animated 3D GIFs, to eyeball data, samples and results."""
 
 import argparse
+import math
 import os
 import re
 import sys
@@ -23,6 +24,17 @@ import motionio  # noqa: E402
 LEFT_COLOR, RIGHT_COLOR, CENTER_COLOR = "#1f77b4", "#d62728", "#404040"
 GIF_FPS = 10.0
 GIF_MAX_FRAMES = 100  # keeps a GIF around a few hundred KB
+
+# Figures people can open (issue 17): every pose panel has one fixed size whatever the clip
+# does (a clip that travels 30 m, or a diverged sample, changes the zoom, not the panel), and a
+# figure never exceeds MAX_PX pixels on a side (Pillow's decompression-bomb guard refuses large
+# ones; viewers scale huge ones until poses vanish). Long strips wrap onto further lines.
+DPI = 100
+MAX_PX = 4000
+PANEL_W_IN, PANEL_H_IN = 1.5, 2.1      # one pose panel, inches (150 x 210 px at DPI)
+PANEL_TITLE_IN = 0.2                   # its "t=.. (..s)" line
+PANEL_GAP_IN = 0.08
+MAX_PANELS_PER_LINE = 12
 
 
 def parse_args(argv):
@@ -126,23 +138,59 @@ def strip_extent(clip, u):
     return half_w, y_lo, y_hi
 
 
-def draw_pose(ax, horiz, height, depth, parents, colors, lw=2.2, zorder=2, alpha=1.0):
-    """One pose (arrays [J]) as bones, far bones first so the near side is drawn on top."""
+def fit_extent(extent, aspect=PANEL_W_IN / PANEL_H_IN):
+    """`extent` grown to the panel's aspect (width / height) so the body fills a fixed-size
+    panel at one scale: the floor stays at the bottom, the root at the centre."""
+    half_w, y_lo, y_hi = extent
+    height = max(y_hi - y_lo, 2.0 * half_w / aspect)
+    return height * aspect / 2.0, y_lo, y_lo + height
+
+
+def extent_size(extent):
+    """Height of a fitted extent: the one number that says how far a panel is zoomed out."""
+    return extent[2] - extent[1]
+
+
+def panel_lines(frames, per_line=MAX_PANELS_PER_LINE):
+    """(panels per line, lines) for a strip of `frames` poses: long strips wrap instead of widening."""
+    per = max(1, min(frames, per_line))
+    return per, int(math.ceil(frames / per))
+
+
+def check_size(fig, path):
+    """Refuse to write a figure above MAX_PX on a side (a layout bug, not bad input)."""
+    w, h = fig.get_size_inches() * DPI
+    if max(w, h) > MAX_PX + 0.5:
+        raise RuntimeError(f"{path}: figure of {w:.0f} x {h:.0f} px exceeds {MAX_PX} px; layout bug")
+
+
+def draw_pose(ax, horiz, height, depth, parents, colors, lw=2.2, zorder=2, alpha=1.0, subject=True):
+    """One pose (arrays [J]) as bones, far bones first so the near side is drawn on top. `subject`
+    marks it as what its panel shows (the figures' manifest checks that it is in view)."""
     bones = [c for c in range(len(parents)) if parents[c] >= 0]
     bones.sort(key=lambda c: depth[c] + depth[parents[c]])
     # One collection per pose, drawn in list order so far bones stay underneath: a Line2D
     # per bone (~20k artists over a replay's strips) was the figures' main drawing cost.
     segments = [[(horiz[parents[c]], height[parents[c]]), (horiz[c], height[c])] for c in bones]
     ax.add_collection(LineCollection(segments, colors=[colors[c] for c in bones], linewidths=lw,
-                                     capstyle="round", zorder=zorder, alpha=alpha))
+                                     capstyle="round", zorder=zorder, alpha=alpha,
+                                     gid="subject" if subject else None))
 
 
-def draw_strip(axes, clip, parents, colors, shown, fps, u, extent):
+def draw_strip(axes, clip, parents, colors, shown, fps, u, extent, ylabel_axes=None):
     """Side-view poses of frames `shown` of `clip` [T, J, 3], one per axis of `axes`, each
-    centred on the root; `extent` = strip_extent(...) (shared so panels have one scale)."""
+    centred on the root; `extent` = fit_extent(strip_extent(...)) (shared so panels have one
+    scale), or "per_panel": each panel zoomed to its own pose, its view height in its title (for
+    diverged motion, whose frames differ wildly in size). `ylabel_axes`: the axes that get the
+    height label (default the first)."""
     horiz, height, depth = side_view(clip, u)
-    half_w, y_lo, y_hi = extent
-    for k, (ax, t) in enumerate(zip(axes, shown)):
+    labelled = [axes[0]] if ylabel_axes is None else list(ylabel_axes)
+    for ax, t in zip(axes, shown):
+        if isinstance(extent, str):
+            half_w, y_lo, y_hi = fit_extent(strip_extent(clip[t:t + 1], u))
+            zoom = f", {y_hi - y_lo:.3g} m"
+        else:
+            (half_w, y_lo, y_hi), zoom = extent, ""
         center = horiz[t, 0]
         ax.plot(horiz[:, 0], height[:, 0], color="0.6", lw=1.0, alpha=0.5, zorder=1)  # root path
         ax.axhline(0.0, color="0.35", lw=1.0, zorder=1)
@@ -152,13 +200,27 @@ def draw_strip(axes, clip, parents, colors, shown, fps, u, extent):
         ax.set_ylim(y_lo, y_hi)
         ax.set_aspect("equal")
         ax.set_xticks([])
-        if k:
-            ax.set_yticks([])
+        if any(ax is a for a in labelled):
+            ax.set_ylabel("height (m)", fontsize=7)
+            ax.tick_params(labelsize=6)
         else:
-            ax.set_ylabel("height (m)")
-        ax.set_title(f"t={t} ({t / fps:.2f}s)", fontsize=8)
+            ax.set_yticks([])
+        ax.set_title(f"t={t} ({t / fps:.2f}s){zoom}", fontsize=8)
         for side in ("top", "right"):
             ax.spines[side].set_visible(False)
+
+
+def strip_axes(fig, left, top, per_line, lines, fig_w, fig_h):
+    """A grid of fixed-size pose panels whose top-left corner is (left, top) inches from the
+    figure's top-left; returns the axes row by row."""
+    axes = []
+    for line in range(lines):
+        for k in range(per_line):
+            x = left + k * (PANEL_W_IN + PANEL_GAP_IN)
+            y = top + line * (PANEL_H_IN + PANEL_TITLE_IN + PANEL_GAP_IN) + PANEL_TITLE_IN
+            axes.append(fig.add_axes((x / fig_w, 1.0 - (y + PANEL_H_IN) / fig_h, PANEL_W_IN / fig_w,
+                                      PANEL_H_IN / fig_h)))
+    return axes
 
 
 def render_strip(motion, i, frames, path):
@@ -167,20 +229,25 @@ def render_strip(motion, i, frames, path):
     colors = bone_colors(motion.skeleton)
     u = view_axis(clip)
     shown = strip_frames(length, frames)
-    extent = strip_extent(clip, u)
-    half_w, y_lo, y_hi = extent
-    panel_h = 3.0
-    panel_w = panel_h * (2 * half_w) / (y_hi - y_lo)
-    fig, axes = plt.subplots(1, len(shown), figsize=(panel_w * len(shown) + 0.4, panel_h + 0.9),
-                             squeeze=False)
-    draw_strip(axes[0], clip, motion.skeleton["parents"], colors, shown, motion.fps, u, extent)
+    extent = fit_extent(strip_extent(clip, u))
+    per_line, lines = panel_lines(len(shown))
+    left, head, foot = 0.45, 0.55, 0.3
+    fig_w = left + per_line * (PANEL_W_IN + PANEL_GAP_IN) + 0.1
+    fig_h = head + lines * (PANEL_H_IN + PANEL_TITLE_IN + PANEL_GAP_IN) + foot
+    fig = plt.figure(figsize=(fig_w, fig_h), dpi=DPI)
+    axes = strip_axes(fig, left, head, per_line, lines, fig_w, fig_h)
+    for ax in axes[len(shown):]:
+        ax.set_visible(False)
+    firsts = [axes[k * per_line] for k in range(lines)]
+    draw_strip(axes[:len(shown)], clip, motion.skeleton["parents"], colors, shown, motion.fps, u, extent,
+               ylabel_axes=firsts)
     caption = motion.captions[i][0]
-    title = "\n".join(textwrap.wrap(caption, width=max(40, int(18 * panel_w * len(shown)))))
-    fig.suptitle(title, fontsize=10)
-    fig.text(0.01, 0.01, f"{motion.ids[i]} [{motion.split[i]}] {length} frames; "
+    title = textwrap.shorten(caption, width=max(30, int(11 * fig_w)))
+    fig.suptitle(title, fontsize=10, y=1.0 - 0.12 / fig_h, va="top")
+    fig.text(0.01, 0.08 / fig_h, f"{motion.ids[i]} [{motion.split[i]}] {length} frames; "
              "blue = left, red = right", fontsize=7, color="0.3")
-    fig.tight_layout(rect=(0, 0.03, 1, 0.95))
-    motionio.atomic_output(path, lambda tmp: fig.savefig(tmp, format="png", dpi=100), suffix=".png")
+    check_size(fig, path)
+    motionio.atomic_output(path, lambda tmp: fig.savefig(tmp, format="png", dpi=DPI), suffix=".png")
     plt.close(fig)
 
 

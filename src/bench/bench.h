@@ -58,6 +58,22 @@ struct TrainBenchOptions {
 // One training step's time, FLOPs and FLOP rate against sgemm; prints a table to `out`.
 void bench_train(const TrainBenchOptions& o, std::ostream& out);
 
+struct DdpBenchOptions {
+  std::string config;                  // any training config
+  std::vector<std::string> overrides;  // key=value overrides of it
+  int nproc = 2;                       // data-parallel processes
+  int threads = 0;                     // threads in all (run.threads; 0 = all cores); each process takes threads / nproc
+  int steps = 3;                       // timed steps per setup
+  int warmup = 1;                      // untimed steps first
+  double bucket_mb = 25;               // gradient bucket size
+  bool worker = false;                 // internal: run as one of the ranks
+  std::string report;                  // internal: where rank 0 writes its timings
+};
+// One process x all threads against nproc processes x threads / nproc (all-reduce
+// overlapped with backward and after it) on the same global batch, and the
+// all-reduce of every gradient alone; prints a table to `out`.
+void bench_ddp(const DdpBenchOptions& o, std::ostream& out);
+
 struct AnchorrouteBenchOptions {
   std::string generator = "experiments/generators/anchorroute.yaml";  // an anchorroute generator file
   std::vector<std::string> overrides;                                 // generator.* overrides of it

@@ -12,15 +12,17 @@
 #include "control/anchors.h"
 #include "control/control_task.h"
 #include "core/error.h"
+#include "core/trained_runs.h"
 #include "data/fixture/fixture_build.h"
 #include "data/motion_set.h"
 #include "data/skeleton.h"
 #include "models/anchor_adapters.h"
 #include "models/token_prior.h"
-#include "samplers/anchor_loss.h"
+#include "control/anchor_loss.h"
 #include "samplers/anchorroute_generator.h"
 #include "samplers/motion_generator.h"
 #include "samplers/tmd_sampler.h"
+#include "train/dependencies.h"
 
 namespace mc {
 
@@ -56,6 +58,7 @@ void bench_anchorroute(const AnchorrouteBenchOptions& o, std::ostream& out) {
   Component c0 = config(0);
   const auto* arc = dynamic_cast<const AnchorRouteGeneratorConfig*>(c0.cfg.get());
   if (!arc) fail("bench anchorroute: '{}' is a '{}' generator; give an anchorroute one", o.generator, c0.type);
+  resolve_dependencies(c0);
   auto gen0 = as_generator(c0).make({});
   out << fmt::format("AnchorRoute bench: {} tasks ({}), {} torch thread(s)\n  {}\n", N, o.protocol,
                      torch::get_num_threads(), gen0->describe());
@@ -67,7 +70,14 @@ void bench_anchorroute(const AnchorrouteBenchOptions& o, std::ostream& out) {
   std::vector<AnchorSet> sets;
   for (auto& t : tasks) sets.push_back(anchors_from_spec(t.spec, t.length, data.skeleton, t.source.data()));
   for (int k : counts) {
-    auto gen = k == 0 ? std::move(gen0) : as_generator(config(k)).make({});
+    std::unique_ptr<MotionGenerator> gen;
+    if (k == 0) {
+      gen = std::move(gen0);
+    } else {
+      Component ck = config(k);
+      resolve_dependencies(ck);
+      gen = as_generator(ck).make({});
+    }
     double best = 1e300;
     GeneratedMotions g;
     for (int r = 0; r < o.repeats; ++r) {
@@ -82,7 +92,7 @@ void bench_anchorroute(const AnchorrouteBenchOptions& o, std::ostream& out) {
   // network call (adapter hooks + TMD, both passes) at the sampler's batch, and decoding.
   std::string adapter_run = arc->adapter_run;
   if (adapter_run.empty() && !arc->adapter_config.empty())
-    adapter_run = train_on_demand(arc->adapter_config, arc->adapter_overrides);
+    adapter_run = trained_run("adapter", arc->adapter_run, arc->adapter_config, arc->adapter_overrides);
   const TmdSamplerConfig& sc = arc->sampler;
   const int64_t batch = std::min<int64_t>(N, sc.batch_size);
   double net_call = 0, decode = 0;
@@ -98,7 +108,7 @@ void bench_anchorroute(const AnchorrouteBenchOptions& o, std::ostream& out) {
     auto feats = torch::zeros({batch, L * s, adapter_feature_width(a.cfg.body_joints)});
     auto valid = torch::zeros({batch, L}, torch::kBool);
     for (int64_t i = 0; i < batch; ++i) {
-      feats[i].narrow(0, 0, sets[i].frames).copy_(adapter_features(sets[i], a.cfg.body_joints));
+      feats[i].narrow(0, 0, sets[i].frames).copy_(adapter_features(sets[i], a.cfg.body_joints, a.cfg.features.delta_scale));
       valid[i].narrow(0, 0, (tasks[i].length + s - 1) / s).fill_(true);
     }
     torch::NoGradGuard ng;

@@ -7,6 +7,7 @@
 
 #include "bench/bench.h"
 #include "core/error.h"
+#include "train/dependencies.h"
 #include "train/train_job.h"
 #include "train/trainer.h"
 
@@ -27,7 +28,8 @@ StepTiming time_steps(const std::string& config, const std::vector<std::string>&
   ensure_training_data(job);
   torch::Device device = setup_torch(job.run);
   auto data = MotionDataset::load(resolve_data_path(job.data.path));
-  TrainContext ctx{data, device, &job, job.data.window, job.data.trim_padding};
+  TrainContext ctx{data, device, &job, job.data.window, job.data.trim_padding, job.optim.ema_decay};
+  resolve_dependencies(job.model);
   auto trainable = make_trainable(job.model, ctx);
   trainable->module().to(device);
   trainable->module().train();

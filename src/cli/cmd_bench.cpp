@@ -90,6 +90,22 @@ void add_bench_command(CLI::App& app) {
   tr->add_flag("!--no-padded", to->compare_padded, "skip the padded comparison");
   tr->callback([to] { bench_train(*to, std::cout); });
 
+  auto* dd = cmd->add_subcommand("ddp", "data-parallel scaling: 1 process x all threads vs N processes x threads / N "
+                                        "on the same global batch (all-reduce overlapped with backward and after "
+                                        "it), and the all-reduce of every gradient alone");
+  auto dopt = std::make_shared<DdpBenchOptions>();
+  dd->add_option("config", dopt->config, "training config, e.g. configs/prior/flow_s.yaml")->required();
+  dd->add_option("overrides", dopt->overrides, "key=value overrides of the config");
+  dd->add_option("--nproc", dopt->nproc, "data-parallel processes")->check(CLI::Range(2, 64));
+  dd->add_option("--threads", dopt->threads, "threads in all (0 = the config's run.threads)")
+      ->check(CLI::NonNegativeNumber);
+  dd->add_option("--steps", dopt->steps, "timed steps per setup")->check(CLI::Range(1, 100000));
+  dd->add_option("--warmup", dopt->warmup, "untimed steps first")->check(CLI::Range(0, 100000));
+  dd->add_option("--bucket-mb", dopt->bucket_mb, "gradient bucket size in MiB")->check(CLI::Range(0.001, 1e5));
+  dd->add_flag("--worker", dopt->worker)->group("");  // internal: one of the ranks
+  dd->add_option("--report", dopt->report)->group("");
+  dd->callback([dopt] { bench_ddp(*dopt, std::cout); });
+
   auto* ev = cmd->add_subcommand("eval", "time to evaluate N motions (embedding + every metric, one replication)");
   struct EvalArgs {
     std::string evaluator = "configs/eval/evaluator_smoke.yaml";

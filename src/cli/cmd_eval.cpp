@@ -43,7 +43,7 @@ EvalJobResult run_eval_job(EvalJobConfig& job, const std::vector<std::string>& o
   // inputs' bytes, so a file regenerated at the same path is a new evaluation, never a
   // stale cached one. The evaluator is trained (or found) first for its checkpoint.
   RunsRootScope components_root(job.run.root);  // the evaluator it trains lives under run.root too
-  TrainResult ev_run = run_train(resolve_data_path(job.eval.evaluator), {});
+  TrainResult ev_run = run_train(resolve_data_path(job.eval.evaluator), job.eval.evaluator_overrides);
   std::string ref_path = resolve_data_path(job.eval.reference);
   std::string motions_path = job.eval.motions.empty() ? ref_path : resolve_data_path(job.eval.motions);
   std::string src_path = job.eval.source.empty() ? "" : resolve_data_path(job.eval.source);

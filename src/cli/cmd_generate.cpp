@@ -9,6 +9,7 @@
 #include <optional>
 
 #include "cli/commands.h"
+#include "train/dependencies.h"
 #include "train/train_job.h"
 #include "cli/generate_job.h"
 #include "control/control_task.h"
@@ -92,7 +93,8 @@ void run_generate(const std::string& file, const std::vector<std::string>& overr
 
   GeneratorContext ctx;
   ctx.device = setup_torch(job.run);
-  auto gen = as_generator(job.generator).make(ctx);  // trains what it needs first
+  resolve_dependencies(job.generator);  // trains what the generator needs first
+  auto gen = as_generator(job.generator).make(ctx);
   std::cerr << "generator: " << gen->describe() << "\n";
   GeneratedMotions g = gen->generate(tasks, seed);
 

@@ -6,6 +6,7 @@
 #include "cli/commands.h"
 #include "cli/jobs.h"
 #include "cli/sample_job.h"
+#include "train/dependencies.h"
 #include "train/train_job.h"
 #include "core/error.h"
 #include "core/run_dir.h"
@@ -22,7 +23,8 @@ static void run_sample(const std::string& file, const std::vector<std::string>& 
   rc.device = job.run.device;
   if (std::string e = rc.validate(); !e.empty()) fail("{}: run.device: {}", file, e);
 
-  std::string prior_dir = resolve_prior_run(job.prior, &std::cerr);
+  resolve_dependencies(job.prior);  // a prior named by its training config is trained first
+  const std::string prior_dir = job.prior.run();
   torch::Device device = setup_torch(rc);
   FlowPrior prior = FlowPrior::load(prior_dir, device);
 

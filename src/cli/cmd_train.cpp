@@ -10,6 +10,7 @@
 #include "core/atomic_file.h"
 #include "core/error.h"
 #include "data/skeleton.h"
+#include "train/distributed.h"
 #include "train/pretrained.h"
 #include "train/trainer.h"
 
@@ -24,6 +25,10 @@ void add_train_command(CLI::App& app) {
     std::string file;
     std::vector<std::string> overrides;
     TrainLoopOptions loop;
+    int nproc = 1;
+    DistOptions dist;
+    double bucket_mb = 25;
+    std::string overlap = "on";
   };
   auto a = std::make_shared<Args>();
   cmd->add_option("config", a->file, "config file, e.g. configs/train/autoencoder_smoke.yaml")->required();
@@ -32,8 +37,54 @@ void add_train_command(CLI::App& app) {
   cmd->add_option("--snapshot-every", a->loop.snapshot_every,
                   "also save the final weights every N steps to checkpoints/snapshot_NNNNNN.pt (for "
                   "tools/health_curve.sh); does not change the run's name");
+  cmd->add_option("--nproc", a->nproc,
+                  "data-parallel training with N local processes (the global batch stays optim.batch_size; each "
+                  "process computes batch_size / N clips with run.threads / N threads); under torchrun or a "
+                  "scheduler, leave it out: RANK, WORLD_SIZE, MASTER_ADDR and MASTER_PORT say the job")
+      ->check(CLI::Range(1, 1024));
+  cmd->add_option("--dist-timeout", a->dist.timeout_seconds,
+                  "data-parallel: seconds a process waits for the others (rendezvous, all-reduce) before it fails "
+                  "naming the silent one")
+      ->check(CLI::Range(1.0, 1e6));
+  cmd->add_option("--bucket-mb", a->bucket_mb, "data-parallel: gradient all-reduce bucket size in MiB")
+      ->check(CLI::Range(0.001, 1e5));
+  cmd->add_option("--overlap", a->overlap,
+                  "data-parallel: on = launch each bucket's all-reduce from the backward's gradient hooks, off = "
+                  "after the backward")
+      ->check(CLI::IsMember({"on", "off"}));
   cmd->callback([a] {
+    const DistEnv env = dist_env_from_environment();
+    if (a->nproc > 1) {
+      if (env.distributed())
+        fail("--nproc {} starts local processes itself, but this process is already rank {} of {} (RANK and "
+             "WORLD_SIZE are set, e.g. by torchrun): leave --nproc out",
+             a->nproc, env.rank, env.world);
+      // The same command line for every rank, without --nproc.
+      std::vector<std::string> args;
+      const auto& argv = command_line();
+      for (size_t i = 0; i < argv.size(); ++i) {
+        if (argv[i] == "--nproc") {
+          ++i;
+          continue;
+        }
+        if (argv[i].rfind("--nproc=", 0) == 0) continue;
+        args.push_back(argv[i]);
+      }
+      // A batch that does not divide is refused once, here, rather than by every rank.
+      check_batch_divides(load_job<TrainJobConfig>(redirected_config(a->file), a->overrides), a->nproc);
+      const int code = launch_local_ranks(a->nproc, args, a->dist.timeout_seconds + 10);
+      if (code != 0) throw ExitStatus(code);
+      return;
+    }
+    std::unique_ptr<DataParallel> dp;
+    if (env.distributed()) {
+      a->dist.bucket_bytes = static_cast<int64_t>(a->bucket_mb * (1 << 20));
+      a->dist.overlap = a->overlap == "on";
+      dp = DataParallel::join(env, a->dist);
+      a->loop.data_parallel = dp.get();
+    }
     TrainResult r = run_train(a->file, a->overrides, a->loop);
+    if (dp && dp->rank() != 0) return;  // rank 0 reports the run
     std::cout << "run: " << r.run_dir.string() << (r.skipped ? " (already finished)" : "") << "\n";
     for (auto& [k, v] : r.summary) std::cout << fmt::format("  {} = {:.6g}\n", k, v);
   });

@@ -14,4 +14,5 @@ void add_eval_commands(CLI::App& app);  // eval, score
 void add_reproduce_command(CLI::App& app);
 void add_generate_command(CLI::App& app);
 void add_health_command(CLI::App& app);
+void add_export_command(CLI::App& app);  // export --format bvh
 }  // namespace mc

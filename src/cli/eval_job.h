@@ -13,6 +13,7 @@ namespace mc {
 
 struct EvalInputs : Config {
   std::string evaluator = "configs/eval/evaluator_smoke.yaml";
+  std::vector<std::string> evaluator_overrides;  // e.g. your own dataset: [data.path=data/mine.h5, run.name=mine]
   std::string reference = "data/fixture_smoke.h5";
   std::string split = "test";
   std::string motions;
@@ -20,6 +21,9 @@ struct EvalInputs : Config {
   std::string source;
   void visit(FieldVisitor& v) override {
     v("evaluator", evaluator, "training config of the evaluator (trained on first use, then reused)");
+    v("evaluator_overrides", evaluator_overrides,
+      "key=value overrides applied to `evaluator`, e.g. [data.path=data/mine.h5, run.name=mine] to train it on "
+      "your own dataset");
     v("reference", reference, "ground-truth motion file");
     v("split", split, "reference split", one_of({"train", "val", "test"}));
     v("motions", motions, "motion file to evaluate ('' = the reference split itself: the ground-truth row)");

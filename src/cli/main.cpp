@@ -14,6 +14,7 @@
 #include "core/error.h"
 #include "core/interrupt.h"
 #include "core/resources.h"
+#include "train/distributed.h"
 
 namespace {
 
@@ -39,6 +40,11 @@ void ensure_passive_openmp(char** argv) {
 
 int main(int argc, char** argv) {
   ensure_passive_openmp(argv);
+  mc::set_command_line(argc, argv);  // `train --nproc N` starts its ranks with it
+  // A data-parallel rank says which one it is in its errors.
+  std::string who = "motionctl";
+  if (const char* w = std::getenv("WORLD_SIZE"); w && std::atoi(w) > 1)
+    if (const char* r = std::getenv("RANK")) who = std::string("motionctl[rank ") + r + "]";
   CLI::App app{"motionctl: spatially controlled human motion generation (ProjFlow, AnchorRoute)"};
   app.require_subcommand(1);
   mc::add_fixture_command(app);
@@ -52,17 +58,23 @@ int main(int argc, char** argv) {
   mc::add_sample_command(app);
   mc::add_eval_commands(app);
   mc::add_health_command(app);
+  mc::add_export_command(app);
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
     int code = app.exit(e);
     return code == 0 ? 0 : mc::kExitUserError;
   } catch (const mc::UserError& e) {
-    std::cerr << "motionctl: error: " << e.what() << "\n";
+    std::cerr << who << ": error: " << e.what() << "\n";
     return mc::kExitUserError;
   } catch (const mc::Interrupted& e) {
-    std::cerr << "motionctl: " << e.what() << "\n";
+    std::cerr << who << ": " << e.what() << "\n";
     return 128 + e.signal;
+  } catch (const mc::ExitStatus& e) {
+    return e.code;
+  } catch (const mc::DataParallelError& e) {
+    std::cerr << who << ": error: " << e.what() << "\n";
+    return 1;
   } catch (const std::bad_alloc&) {
     // Sizes are checked up front (core/resources.h); this is what slips through.
     std::cerr << "motionctl: error: out of memory (" << mc::format_bytes(mc::available_memory_bytes())

@@ -6,7 +6,7 @@
 
 #include "core/config.h"
 #include "samplers/flow_sampler.h"
-#include "samplers/prior_source.h"
+#include "models/prior_source.h"
 
 namespace mc {
 

@@ -18,6 +18,7 @@
 #include "core/error.h"
 #include "core/h5_seal.h"
 #include "core/isolated.h"
+#include "data/text_vocab.h"
 
 namespace mc {
 namespace {
@@ -549,6 +550,18 @@ void MotionSet::check(const std::string& source) const {
     for (float v : s.feature_std)
       if (!(v > 0)) fail("{}: 'stats/feature_std' must be positive; recompute the statistics", source);
   }
+  // One vocabulary format for every writer (docs/formats.md, "Vocabulary"): the
+  // special tokens at ids 0-3, then the words. A file in another layout (an older
+  // converter's sorted word list) is refused here, naming the file, rather than by
+  // the first model that builds a TextVocab from it.
+  if (!vocab.empty()) {
+    const auto& specials = TextVocab::special_tokens();
+    if (vocab.size() < specials.size() || !std::equal(specials.begin(), specials.end(), vocab.begin()))
+      fail("{}: 'vocab' must start with <pad>, <unk>, <sos>, <eos> (ids 0-3), then the words (docs/formats.md, "
+           "Vocabulary); it starts with '{}'. Re-convert the dataset with tools/humanml3d_to_h5.py (1.1 or later) "
+           "or delete the 'vocab' dataset (models then build it from the train captions)",
+           source, vocab.front());
+  }
   std::set<std::string> words;
   for (auto& w : vocab)
     if (!words.insert(w).second) fail("{}: 'vocab' lists '{}' twice; vocabulary words must be unique", source, w);
@@ -607,9 +620,13 @@ void write_motion_file(const std::string& path, const MotionSet& m, const std::f
       Handle g = w.group(root, "stats");
       w.dataset(g.get(), "joint_mean", H5T_IEEE_F32LE, H5T_NATIVE_FLOAT, {3}, s.joint_mean.data());
       w.dataset(g.get(), "joint_std", H5T_IEEE_F32LE, H5T_NATIVE_FLOAT, {3}, s.joint_std.data());
-      const auto F = static_cast<hsize_t>(s.feature_mean.size());
-      w.dataset(g.get(), "feature_mean", H5T_IEEE_F32LE, H5T_NATIVE_FLOAT, {F}, s.feature_mean.data());
-      w.dataset(g.get(), "feature_std", H5T_IEEE_F32LE, H5T_NATIVE_FLOAT, {F}, s.feature_std.data());
+      // Feature statistics are optional: a converted dataset carries joint statistics
+      // only and components compute the feature ones from its train split.
+      if (!s.feature_mean.empty()) {
+        const auto F = static_cast<hsize_t>(s.feature_mean.size());
+        w.dataset(g.get(), "feature_mean", H5T_IEEE_F32LE, H5T_NATIVE_FLOAT, {F}, s.feature_mean.data());
+        w.dataset(g.get(), "feature_std", H5T_IEEE_F32LE, H5T_NATIVE_FLOAT, {F}, s.feature_std.data());
+      }
       w.attr_string(g.get(), "feature_layout", s.feature_layout);
     }
     if (!m.vocab.empty()) w.strings(root, "vocab", m.vocab);
@@ -718,9 +735,17 @@ MotionSet read_motion_file_unchecked(const std::string& path) {
     NormStats s;
     s.joint_mean = r.numeric<float>("stats/joint_mean", H5T_FLOAT, H5T_NATIVE_FLOAT, {3});
     s.joint_std = r.numeric<float>("stats/joint_std", H5T_FLOAT, H5T_NATIVE_FLOAT, {3});
-    s.feature_mean = r.numeric<float>("stats/feature_mean", H5T_FLOAT, H5T_NATIVE_FLOAT, {-1});
-    s.feature_std = r.numeric<float>("stats/feature_std", H5T_FLOAT, H5T_NATIVE_FLOAT,
-                                     {static_cast<long long>(s.feature_mean.size())});
+    // Feature statistics are optional (tools/humanml3d_to_h5.py writes joint statistics
+    // only; the evaluator computes feature ones from the train split, compute_norm_stats).
+    const bool has_fm = r.exists("stats/feature_mean"), has_fs = r.exists("stats/feature_std");
+    if (has_fm != has_fs)
+      r.bad(fmt::format("group 'stats' holds only '{}'", has_fm ? "feature_mean" : "feature_std"),
+            "write both feature_mean and feature_std, or neither");
+    if (has_fm) {
+      s.feature_mean = r.numeric<float>("stats/feature_mean", H5T_FLOAT, H5T_NATIVE_FLOAT, {-1});
+      s.feature_std = r.numeric<float>("stats/feature_std", H5T_FLOAT, H5T_NATIVE_FLOAT,
+                                       {static_cast<long long>(s.feature_mean.size())});
+    }
     s.feature_layout = r.has_attr("stats", "feature_layout") ? r.attr_string("stats", "feature_layout") : "";
     m.stats = std::move(s);
   }

@@ -16,10 +16,10 @@
 #include "models/flow_prior.h"
 #include "models/flow_transformer.h"
 #include "models/token_prior.h"
-#include "samplers/anchor_loss.h"
-#include "samplers/tmd_sampler.h"
-#include "train/trainable.h"
-#include "train/trainer.h"
+#include "control/anchor_loss.h"
+#include "core/trained_runs.h"
+#include "models/trainable.h"
+#include "models/trained_run.h"
 
 namespace mc {
 namespace nn = torch::nn;
@@ -50,6 +50,13 @@ void AdapterTrainingConfig::visit(FieldVisitor& v) {
     "seed it draws the same batches, times and anchors as its real-feature twin");
 }
 
+void AdapterFeatureConfig::visit(FieldVisitor& v) {
+  v("delta_scale", delta_scale,
+    "multiplies eq. (6)'s path-difference channels Delta p (metres per frame) so the root's required speed "
+    "reaches the scale of the positions (1 = as written; 20 = metres per second at 20 fps)",
+    in_range(1e-3, 1e3));
+}
+
 void AnchorAdapterConfig::visit(FieldVisitor& v) {
   v("adapter", adapter, "condition path: anchorkv (eqs. (14)-(15)), cross_attention or controlnet (Table IV baselines)",
     one_of({"anchorkv", "cross_attention", "controlnet"}));
@@ -74,6 +81,7 @@ void AnchorAdapterConfig::visit(FieldVisitor& v) {
   v("anchorkv", anchorkv, "AnchorKV's memory attention (defaults: eq. (15) as written)");
   v("training", training, "where controlled training spends its signal, and the zeroed-feature audit twin "
     "(defaults: uniform t, real features)");
+  v("features", features, "scale of the adapter's input features (default: eqs. (5)-(6) as written)");
   v("lambda_anc", lambda_anc, "lambda_anc of eq. (16) (0 = CE only, Table IV 'without anchor loss')", at_least(0.0));
   v("delta", delta, "support radius delta of eqs. (7)-(10), frames", in_range(0, 50));
   v("cond_drop", cond_drop, "probability of the null text during adapter training (keeps CFG usable)",
@@ -104,7 +112,7 @@ int64_t adapter_feature_width(const std::vector<int>& body_joints) {
   return w;
 }
 
-torch::Tensor adapter_features(const AnchorSet& set, const std::vector<int>& body_joints) {
+torch::Tensor adapter_features(const AnchorSet& set, const std::vector<int>& body_joints, double delta_scale) {
   const int64_t T = set.frames;
   auto out = torch::zeros({T, adapter_feature_width(body_joints)});
   int64_t col = 0;
@@ -112,6 +120,7 @@ torch::Tensor adapter_features(const AnchorSet& set, const std::vector<int>& bod
     auto layout = anchor_feature_layout(kFamilies[i], body_joints);
     if (set.family == kFamilies[i] && set.size() > 0) {
       FeatureMatrix m = anchor_features(set, layout);  // eqs. (5)-(6)
+      if (delta_scale != 1.0) m.middleCols(2 * layout.d_f, layout.d_f) *= static_cast<float>(delta_scale);
       out.narrow(1, col, layout.width()).copy_(torch::from_blob(m.data(), {T, layout.width()}, torch::kFloat32));
     }
     col += layout.width();
@@ -274,7 +283,7 @@ CrossAttentionAdapterImpl::CrossAttentionAdapterImpl(const AnchorAdapterConfig& 
     q->push_back(nn::Linear(d, d));
     kv->push_back(nn::Linear(d, 2 * d));
     o_->push_back(nn::Linear(d, d));
-    mlp->push_back(nn::Sequential(nn::Linear(d, 4 * d), nn::SiLU(), nn::Dropout(c.dropout), nn::Linear(4 * d, d)));
+    mlp->push_back(nn::Sequential(nn::Linear(d, 4 * d), nn::SiLU(), ShardedDropout(c.dropout), nn::Linear(4 * d, d)));
     norm1->push_back(nn::LayerNorm(nn::LayerNormOptions({d})));
     norm2->push_back(nn::LayerNorm(nn::LayerNormOptions({d})));
     out->push_back(zero_linear(d, d));
@@ -372,7 +381,7 @@ void freeze(nn::Module& m) {
 class AnchorAdapterTrainer : public Trainable {
  public:
   AnchorAdapterTrainer(const AnchorAdapterConfig& c, const TrainContext& ctx) : cfg_(c), ctx_(ctx) {
-    tmd_run_ = c.tmd_run.empty() ? train_on_demand(c.tmd_config, c.tmd_overrides) : c.tmd_run;
+    tmd_run_ = trained_run("model.tmd", c.tmd_run, c.tmd_config, c.tmd_overrides);
     prior_ = std::make_shared<TokenPrior>(TokenPrior::load(tmd_run_, ctx.device));
     if (!prior_->is_tmd()) fail("model.tmd_run: '{}' is not a tmd_prior run", tmd_run_);
     prior_->tokenizer().check_compatible(ctx.data->set(), ctx.data->source());
@@ -394,7 +403,9 @@ class AnchorAdapterTrainer : public Trainable {
     return out;
   }
 
-  LossOutput loss(const std::vector<int64_t>& idx) override {
+  // Every draw (captions, anchor sets, t, drops, corruptions) is made for the whole
+  // batch and cut to the shard's rows (train/batch_shard.h).
+  LossOutput loss(const std::vector<int64_t>& idx, const BatchShard& shard) override {
     const MotionSet& set = ctx_.data->set();
     std::vector<std::string> caps;
     std::vector<AnchorSet> sets;
@@ -407,12 +418,13 @@ class AnchorAdapterTrainer : public Trainable {
     auto t = torch::rand({B});
     if (cfg_.training.t_power != 1.0) t = t.pow(cfg_.training.t_power);  // low-t emphasis
     auto drop = torch::rand({B}) < cfg_.cond_drop;
-    auto r = controlled_loss(idx, caps, sets, t, drop, nullptr, cfg_.training.zero_features);
+    auto r = controlled_loss(idx, caps, sets, t, drop, nullptr, cfg_.training.zero_features, shard);
     LossOutput out;
     out.loss = cfg_.lambda_anc > 0 ? r.ce + cfg_.lambda_anc * r.anc : r.ce;  // eq. (16)
     out.parts = {{"ce", r.ce.detach()}, {"anc", r.anc.detach()}, {"ctrl_err", r.ctrl}};
     return out;
   }
+  bool shards_batches() const override { return true; }
 
   // Validation CE and soft-decoded anchor error with fixed draws (the same clips, anchors,
   // captions and corruption at every call): at t = 0.5, and at t = 0.1 (mostly noise, where
@@ -501,36 +513,53 @@ class AnchorAdapterTrainer : public Trainable {
         torch::from_blob(const_cast<float*>(set.joints.data()), {static_cast<int64_t>(N), Tm, J, 3}, torch::kFloat32));
   }
 
-  Losses controlled_loss(const std::vector<int64_t>& idx, const std::vector<std::string>& caps,
-                         const std::vector<AnchorSet>& sets, const torch::Tensor& t, const torch::Tensor& drop,
-                         at::Generator* gen, bool zero_features = false) {
+  // Inputs are the whole batch's (corruptions drawn for all of it); a shard computes
+  // its rows and its share: sums over its targets and anchors divided by the whole
+  // batch's counts.
+  Losses controlled_loss(const std::vector<int64_t>& idx_whole, const std::vector<std::string>& caps_whole,
+                         const std::vector<AnchorSet>& sets_whole, const torch::Tensor& t, const torch::Tensor& drop,
+                         at::Generator* gen, bool zero_features = false, const BatchShard& shard = {}) {
     const auto dev = ctx_.device;
     const auto& pc = prior_->tmd_config();
-    const int64_t B = idx.size(), L = tokens_.size(1), Tp = L * stride_, K = prior_->codebook_size();
-    auto ix = torch::tensor(idx, torch::kInt64);
-    auto x1 = tokens_.index_select(0, ix).to(dev);
-    auto n = token_lengths_.index_select(0, ix);
+    const int64_t Bw = idx_whole.size(), L = tokens_.size(1), Tp = L * stride_, K = prior_->codebook_size();
+    auto ixw = torch::tensor(idx_whole, torch::kInt64);
+    auto x1 = tokens_.index_select(0, ixw).to(dev);
+    auto n = token_lengths_.index_select(0, ixw);
     auto valid = (torch::arange(L).unsqueeze(0) < n.unsqueeze(1)).to(dev);
     // eq. (19): the TMD corruption path, t ~ U[0, 1 - eps).
     auto tt = (t * (1 - pc.t_eps)).to(dev);
-    auto probs = tmd_path_probs(prior_->distance(), x1, tmd_beta(tt, pc.beta_c, pc.beta_a).view({B, 1}));
-    auto flat = probs.reshape({B * L, K}).to(torch::kCPU);
-    auto xin = (gen ? torch::multinomial(flat, 1, false, *gen) : torch::multinomial(flat, 1)).view({B, L}).to(dev);
-    auto text = prior_->encode_texts(caps);
+    auto probs = tmd_path_probs(prior_->distance(), x1, tmd_beta(tt, pc.beta_c, pc.beta_a).view({Bw, 1}));
+    auto flat = probs.reshape({Bw * L, K}).to(torch::kCPU);
+    auto xin = (gen ? torch::multinomial(flat, 1, false, *gen) : torch::multinomial(flat, 1)).view({Bw, L}).to(dev);
+    const double whole_tokens = valid.sum().item<double>();
+    const std::vector<int64_t> idx = shard.local(idx_whole);
+    const std::vector<AnchorSet> sets = shard.local(sets_whole);
+    const int64_t B = idx.size();
+    auto ix = torch::tensor(idx, torch::kInt64);
+    x1 = shard.local(x1);
+    valid = shard.local(valid);
+    xin = shard.local(xin);
+    tt = shard.local(tt);
+    auto text = prior_->encode_texts(shard.local(caps_whole));
     {
       torch::NoGradGuard ng;
-      text = prior_->net()->drop_condition(text, drop.to(dev));
+      text = prior_->net()->drop_condition(text, shard.local(drop).to(dev));
     }
     auto feats = torch::zeros({B, Tp, adapter_feature_width(cfg_.body_joints)});
     if (!zero_features)
       for (int64_t b = 0; b < B; ++b)
-        feats[b].narrow(0, 0, sets[b].frames).copy_(adapter_features(sets[b], cfg_.body_joints));
+        feats[b].narrow(0, 0, sets[b].frames).copy_(adapter_features(sets[b], cfg_.body_joints, cfg_.features.delta_scale));
     AdapterInputs in{xin, tt, text, valid, feats.to(dev)};
     auto hooks = adapter_->hooks(in);
     auto logits = prior_->net()->transformer->forward(xin, tt, text, valid, &hooks).logits;  // [B, L, K]
     auto sel = valid.reshape({-1});
     Losses r;
-    r.ce = F::cross_entropy(logits.reshape({B * L, K}).index({sel}), x1.reshape({-1}).index({sel}));  // eq. (20)
+    if (shard.whole())
+      r.ce = F::cross_entropy(logits.reshape({B * L, K}).index({sel}), x1.reshape({-1}).index({sel}));  // eq. (20)
+    else
+      r.ce = F::cross_entropy(logits.reshape({B * L, K}).index({sel}), x1.reshape({-1}).index({sel}),
+                              F::CrossEntropyFuncOptions().reduction(torch::kSum)) /
+             std::max(1.0, whole_tokens);
     // eq. (10) through the differentiable soft decode: expected code embedding -> frozen decoder.
     VqTokenizer handle = prior_->tokenizer().model;
     auto& tok = *handle;
@@ -539,8 +568,17 @@ class AnchorAdapterTrainer : public Trainable {
     auto gt = world_.index_select(0, ix).to(dev);
     auto support = make_support_batch(sets, cfg_.delta, gt);
     // Mean over support entries (not the sum) so lambda_anc does not scale with K.
-    r.anc = anchor_loss(world, support).sum() / support.valid.sum().clamp_min(1.0);
-    r.ctrl = mean_control_error(world, make_anchor_batch(sets, dev)).detach();
+    if (shard.whole()) {
+      r.anc = anchor_loss(world, support).sum() / support.valid.sum().clamp_min(1.0);
+      r.ctrl = mean_control_error(world, make_anchor_batch(sets, dev)).detach();
+    } else {
+      auto anchors = make_anchor_batch(sets, dev);
+      const double entries = shard.sum(support.valid.sum().item<double>());
+      const double count = shard.sum(anchors.valid.sum().item<double>());
+      r.anc = anchor_loss(world, support).sum() / std::max(1.0, entries);
+      r.ctrl = count > 0 ? (anchor_errors(world, anchors).sum() / count).detach() : torch::zeros({}, world.options());
+      return r;  // non-finite values are the trainer's to catch: every rank sees the summed loss
+    }
     if (!torch::isfinite(r.ce).item<bool>() || !torch::isfinite(r.anc).item<bool>())
       fail("anchor_adapter: non-finite loss (ce {}, anchor {}); lower optim.lr", r.ce.item<double>(),
            r.anc.item<double>());
@@ -571,36 +609,17 @@ MC_REGISTER_MODEL("anchor_adapter", AnchorAdapterConfig, make_adapter_trainer,
 // ---------------------------------------------------------------- loading
 
 LoadedAnchorAdapter load_anchor_adapter(const std::string& run_dir, torch::Device device) {
-  fs::path dir(run_dir);
-  fs::path final_pt = dir / "checkpoints" / "final.pt", meta_path = dir / "outputs" / kMetaFile;
-  for (const fs::path& p : {dir / "config.yaml", final_pt, meta_path})
-    if (!fs::exists(p))
-      fail("anchor adapter run '{}' is incomplete: '{}' is missing; train it with `motionctl train "
-           "configs/adapter/anchorkv_tiny.yaml` (or set adapter_config to train on demand)",
-           run_dir, p.string());
-  TrainJobConfig job;
-  parse_config(compose_config((dir / "config.yaml").string()), job);
-  if (job.model.type != "anchor_adapter")
-    fail("'{}' is a run of model type '{}', not an anchor_adapter", run_dir, job.model.type);
+  TrainedRun run = open_trained_run(run_dir, {"anchor adapter", {"anchor_adapter"}, {kMetaFile},
+                                              "train one with `motionctl train configs/adapter/anchorkv_tiny.yaml` "
+                                              "(or set adapter_config to train it first)"});
   LoadedAnchorAdapter out;
   out.run_dir = run_dir;
-  out.cfg = dynamic_cast<const AnchorAdapterConfig&>(*job.model.cfg);
+  out.cfg = run.model.as<AnchorAdapterConfig>();
   std::string tmd_run;
-  try {
-    YAML::Node meta = YAML::LoadFile(meta_path.string());
-    tmd_run = meta["tmd_run"].as<std::string>();
-  } catch (const YAML::Exception& e) {
-    fail("'{}' is corrupt: {}", meta_path.string(), e.what());
-  }
+  run.read_meta(kMetaFile, [&](const YAML::Node& meta) { tmd_run = meta["tmd_run"].as<std::string>(); });
   out.prior = std::make_shared<TokenPrior>(TokenPrior::load(tmd_run, device));
   out.module = make_anchor_adapter(out.cfg, out.prior->net()->transformer, out.prior->stride());
-  try {
-    torch::serialize::InputArchive ar;
-    ar.load_from(final_pt.string());
-    out.module->load(ar);
-  } catch (const std::exception&) {  // c10::Error, or torch::jit::ErrorReport on a damaged file
-    fail("anchor adapter checkpoint '{}' is unreadable or does not match its config.yaml", final_pt.string());
-  }
+  run.load_weights(*out.module);
   out.module->to(device);
   out.module->eval();
   out.trainable_parameters = count_parameters(*out.module);

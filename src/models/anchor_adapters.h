@@ -10,6 +10,7 @@
 
 #include "control/anchors.h"
 #include "core/config.h"
+#include "core/trained_runs.h"
 #include "models/token_transformer.h"
 
 namespace mc {
@@ -37,9 +38,19 @@ struct AdapterTrainingConfig : Config {
   bool omitted_from_dump() const override { return t_power == 1.0 && !zero_features; }
 };
 
+// Scale of the adapter's input features (issue 15). Eq. (6)'s path difference Delta p is in
+// metres per frame (~0.02 at 20 fps) beside positions of metres, and it is the channel that
+// says how fast the root must move, which is what a translation-invariant token encodes.
+// Default: as written, left out of the dumped config.
+struct AdapterFeatureConfig : Config {
+  double delta_scale = 1.0;  // multiplies every Delta p channel (20 = metres per second at 20 fps)
+  void visit(FieldVisitor& v) override;
+  bool omitted_from_dump() const override { return delta_scale == 1.0; }
+};
+
 // `model:` section of a controlled-training run (model.type = anchor_adapter).
 // Defaults and the readings behind them: docs/choices.md ("AnchorRoute: adapters").
-struct AnchorAdapterConfig : Config {
+struct AnchorAdapterConfig : Config, DeclaresDependencies {
   std::string adapter = "anchorkv";  // anchorkv | cross_attention | controlnet (Table IV)
   int memory_width = 0;              // d_s of H^s; 0 = the backbone's width (eq. (13): H^s in R^{L x d})
   int encoder_blocks = 2;            // residual conv blocks after the scaffold encoder's downsampling
@@ -55,6 +66,7 @@ struct AnchorAdapterConfig : Config {
   double sparse_keyjoint_ratio = 0.3;
   AnchorKvMemoryConfig anchorkv;
   AdapterTrainingConfig training;
+  AdapterFeatureConfig features;
   // eq. (16)
   double lambda_anc = 0.3;
   int delta = 2;
@@ -65,6 +77,7 @@ struct AnchorAdapterConfig : Config {
   std::vector<std::string> tmd_overrides;
 
   void visit(FieldVisitor& v) override;
+  void dependencies(DependencyVisitor& d) override { d("model.tmd", tmd_run, tmd_config, tmd_overrides); }
   std::string validate() const override;
 };
 
@@ -76,7 +89,8 @@ struct AnchorAdapterConfig : Config {
 // input width serves every family. Width = 11 + 8 + (3 * 3G + 2G) + 3 for G body joints.
 int64_t adapter_feature_width(const std::vector<int>& body_joints);
 // [frames, width] float CPU. UserError if a body-point anchor's joint is not in body_joints.
-torch::Tensor adapter_features(const AnchorSet& set, const std::vector<int>& body_joints);
+// `delta_scale` multiplies the Delta p channels (AdapterFeatureConfig).
+torch::Tensor adapter_features(const AnchorSet& set, const std::vector<int>& body_joints, double delta_scale = 1.0);
 
 // ---------------------------------------------------------------- modules
 

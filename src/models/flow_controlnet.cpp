@@ -11,9 +11,9 @@
 
 #include "core/atomic_file.h"
 #include "core/error.h"
-#include "samplers/prior_source.h"
-#include "train/trainable.h"
-#include "train/trainer.h"
+#include "models/prior_source.h"
+#include "models/trainable.h"
+#include "models/trained_run.h"
 
 namespace mc {
 namespace nn = torch::nn;
@@ -127,36 +127,14 @@ FlowControlNet FlowControlNet::around(FlowPrior base) {
 }
 
 FlowControlNet FlowControlNet::load(const std::string& run_dir, torch::Device device) {
-  fs::path dir(run_dir);
-  fs::path final_pt = dir / "checkpoints" / "final.pt", meta = dir / "outputs" / "controlnet_meta.yaml";
-  if (!fs::is_directory(dir))
-    fail("ControlNet run directory '{}' does not exist; train one with `motionctl train "
-         "configs/prior/flow_controlnet_tiny.yaml`",
-         run_dir);
-  for (const fs::path& p : {dir / "config.yaml", final_pt, meta})
-    if (!fs::exists(p))
-      fail("ControlNet run '{}' is incomplete: '{}' is missing; finish it with `motionctl train {}/config.yaml`",
-           run_dir, p.string(), run_dir);
-  TrainJobConfig job;
-  parse_config(compose_config((dir / "config.yaml").string()), job);
-  if (job.model.type != "flow_controlnet")
-    fail("'{}' is a run of model type '{}', not a ControlNet (flow_controlnet)", run_dir, job.model.type);
+  TrainedRun run = open_trained_run(
+      run_dir, {"ControlNet", {"flow_controlnet"}, {"controlnet_meta.yaml"},
+                "train one with `motionctl train configs/prior/flow_controlnet_tiny.yaml`"});
   std::string base_run;
-  try {
-    base_run = YAML::LoadFile(meta.string())["base_run"].as<std::string>();
-  } catch (const YAML::Exception& e) {
-    fail("'{}' is corrupt: {}", meta.string(), e.what());
-  }
+  run.read_meta("controlnet_meta.yaml", [&](const YAML::Node& meta) { base_run = meta["base_run"].as<std::string>(); });
   FlowControlNet n = around(FlowPrior::load(base_run, device));
   n.run_dir_ = run_dir;
-  try {
-    torch::serialize::InputArchive ar;
-    ar.load_from(final_pt.string());
-    (*n.branch_)->load(ar);
-  } catch (const std::exception&) {  // c10::Error, or torch::jit::ErrorReport on a damaged file
-    fail("ControlNet checkpoint '{}' is unreadable or does not match its base prior '{}'", final_pt.string(),
-         base_run);
-  }
+  run.load_weights(**n.branch_, fmt::format("its base prior '{}'", base_run));
   (*n.branch_)->to(device);
   (*n.branch_)->eval();
   return n;
@@ -195,6 +173,14 @@ ControlNetLosses controlnet_losses(const FlowControlNet& net, const torch::Tenso
                                    const torch::Tensor& t, const torch::Tensor& text, const torch::Tensor& mask,
                                    const torch::Tensor& cmask, const torch::Tensor& control_on,
                                    const std::string& weighting) {
+  return controlnet_losses(net, x1, x0, t, text, mask, cmask, control_on, weighting, {}, {});
+}
+
+ControlNetLosses controlnet_losses(const FlowControlNet& net, const torch::Tensor& x1, const torch::Tensor& x0,
+                                   const torch::Tensor& t, const torch::Tensor& text, const torch::Tensor& mask,
+                                   const torch::Tensor& cmask, const torch::Tensor& control_on,
+                                   const std::string& weighting, const torch::Tensor& fm_count,
+                                   const torch::Tensor& ctrl_count) {
   const int64_t B = x1.size(0);
   auto valid = mask.view({B, mask.size(1), 1, 1}).to(x1.dtype());
   auto tb = t.view({-1, 1, 1, 1}).to(x1.dtype());
@@ -202,7 +188,8 @@ ControlNetLosses controlnet_losses(const FlowControlNet& net, const torch::Tenso
   auto cm = cmask.to(x1.dtype()) * valid;
   auto v = net.raw_velocity(xt, t, text, mask, control_signal(x1, cm), control_on);
   ControlNetLosses out;
-  out.fm = ((v - (x1 - x0)).pow(2) * valid).sum() / (valid.sum() * x1.size(2) * 3 + 1e-8);
+  out.fm = ((v - (x1 - x0)).pow(2) * valid).sum() /
+           ((fm_count.defined() ? fm_count : valid.sum()) * x1.size(2) * 3 + 1e-8);
   // ACMDM's clean estimate x0 + v uses the training noise: its error v - (x1 - x0)
   // carries the same weight at every t. x_t + (1 - t) v (what a sampler can form)
   // has (1 - t) times that error, so with it the branch gets almost no control
@@ -215,7 +202,7 @@ ControlNetLosses controlnet_losses(const FlowControlNet& net, const torch::Tenso
   else
     fail("model.control_loss_weighting '{}' is unknown; use none or one_minus_t_sq", weighting);
   if (control_on.defined()) cm = cm * control_on.to(x1.device(), x1.dtype()).view({B, 1, 1, 1});
-  out.ctrl = ((x1_hat - x1).pow(2) * cm).sum() / (cm.sum() + 1e-8);
+  out.ctrl = ((x1_hat - x1).pow(2) * cm).sum() / ((ctrl_count.defined() ? ctrl_count : cm.sum()) + 1e-8);
   return out;
 }
 
@@ -226,17 +213,7 @@ namespace {
 class FlowControlNetTrainer : public Trainable {
  public:
   FlowControlNetTrainer(const FlowControlNetConfig& c, const TrainContext& ctx) : cfg_(c), ctx_(ctx) {
-    {
-      // Training the base on demand reseeds torch and may change its thread count;
-      // restoring both keeps this run's result independent of whether the base was
-      // trained now or earlier.
-      auto gen = at::detail::getDefaultCPUGenerator();
-      auto rng = gen.get_state();
-      const int threads = torch::get_num_threads();
-      base_run_ = resolve_prior_run(c.base, &std::cerr);
-      gen.set_state(rng);
-      torch::set_num_threads(threads);
-    }
+    base_run_ = c.base.run();  // trained first by the job when named by its config
     net_ = FlowControlNet::around(FlowPrior::load(base_run_, ctx.device));
     const FlowPrior& base = net_.base();
     if (base.num_joints() != ctx.data->num_joints())
@@ -248,21 +225,32 @@ class FlowControlNetTrainer : public Trainable {
   }
   nn::Module& module() override { return *net_.branch(); }
 
-  LossOutput loss(const std::vector<int64_t>& idx) override {
-    MotionBatch b = ctx_.data->batch(idx, ctx_.window, 1, ctx_.device, ctx_.trim_padding);
+  // Every draw (crops, captions, x0, t, drops, control masks) is made for the whole
+  // batch and cut to the shard's rows; the means divide by the whole batch's counts.
+  LossOutput loss(const std::vector<int64_t>& idx, const BatchShard& shard) override {
+    MotionBatch b = ctx_.data->batch(idx, ctx_.window, 1, ctx_.device, ctx_.trim_padding, shard);
     const MotionSet& set = ctx_.data->set();
     std::vector<std::string> caps;
     for (int64_t i : idx) {
       const auto& c = set.captions[i];
       caps.push_back(c[torch::randint(0, static_cast<int64_t>(c.size()), {1}).item<int64_t>()]);
     }
-    const int64_t B = idx.size();
-    auto x0 = torch::randn(b.joints.sizes()).to(ctx_.device);
-    auto t = torch::rand({B}).to(ctx_.device);
-    auto drop = (torch::rand({B}) < cfg_.cond_drop).to(ctx_.device);
-    auto control_on = (torch::rand({B}) >= cfg_.control_drop).to(ctx_.device, torch::kFloat32);
-    auto cmask = control_mask(b, {});
-    auto parts = losses(b, caps, x0, t, drop, cmask, control_on);
+    const int64_t B = idx.size(), T = b.joints.size(1), J = b.joints.size(2);
+    auto x0 = shard.local(torch::randn({B, T, J, 3})).to(ctx_.device);
+    auto t = shard.local(torch::rand({B})).to(ctx_.device);
+    auto drop = shard.local(torch::rand({B}) < cfg_.cond_drop).to(ctx_.device);
+    auto control_on_all = (torch::rand({B}) >= cfg_.control_drop).to(ctx_.device, torch::kFloat32);
+    auto wlen = b.whole_mask.sum(1).to(torch::kCPU).contiguous();
+    std::vector<int64_t> whole_lengths(wlen.data_ptr<int64_t>(), wlen.data_ptr<int64_t>() + wlen.numel());
+    auto cmask_all = random_control_mask(whole_lengths, T, J, cfg_.control_joints, cfg_.min_controlled_frames, {})
+                         .to(ctx_.device);
+    // The whole batch's counts: valid frames, and controlled entries of valid
+    // frames of the samples whose control is on (as controlnet_losses counts them).
+    auto wvalid = b.whole_mask.view({B, T, 1, 1}).to(torch::kFloat32);
+    auto fm_count = wvalid.sum();
+    auto ctrl_count = (cmask_all * wvalid * control_on_all.view({B, 1, 1, 1})).sum();
+    auto parts = losses(b, shard.local(caps), x0, t, drop, shard.local(cmask_all), shard.local(control_on_all),
+                        fm_count, ctrl_count);
     LossOutput out;
     out.loss = parts.fm + cfg_.control_loss_weight * parts.ctrl;
     out.parts = {{"fm", parts.fm.detach()}, {"ctrl", parts.ctrl.detach()}};
@@ -290,7 +278,7 @@ class FlowControlNetTrainer : public Trainable {
         auto x0 = torch::randn(b.joints.sizes(), gen, torch::TensorOptions()).to(ctx_.device);
         auto t = torch::full({B}, tv, torch::TensorOptions().device(ctx_.device));
         auto drop = torch::zeros({B}, torch::TensorOptions().dtype(torch::kBool).device(ctx_.device));
-        auto p = losses(b, caps, x0, t, drop, control_mask(b, gen), {});
+        auto p = losses(b, caps, x0, t, drop, control_mask(b, gen), {}, {}, {});
         fm += p.fm.item<double>() * B;
         ctrl += p.ctrl.item<double>() * B;
         n += B;
@@ -326,13 +314,15 @@ class FlowControlNetTrainer : public Trainable {
   // data's may differ), dropped texts become the base's null vector.
   ControlNetLosses losses(const MotionBatch& b, const std::vector<std::string>& caps, const torch::Tensor& x0,
                           const torch::Tensor& t, const torch::Tensor& drop, const torch::Tensor& cmask,
-                          const torch::Tensor& control_on) {
+                          const torch::Tensor& control_on, const torch::Tensor& fm_count,
+                          const torch::Tensor& ctrl_count) {
     const FlowPrior& base = net_.base();
     auto valid = b.mask.view({b.mask.size(0), b.mask.size(1), 1, 1}).to(torch::kFloat32);
     auto x1 = base.normalize(ctx_.data->denormalize(b.joints)) * valid;
     auto cond = base.encode_texts(caps);
     cond = torch::where(drop.unsqueeze(1), base.null_texts(cond.size(0)), cond);
-    return controlnet_losses(net_, x1, x0, t, cond, b.mask, cmask, control_on, cfg_.control_loss_weighting);
+    return controlnet_losses(net_, x1, x0, t, cond, b.mask, cmask, control_on, cfg_.control_loss_weighting, fm_count,
+                             ctrl_count);
   }
 
   FlowControlNetConfig cfg_;

@@ -6,9 +6,9 @@
 #include <string>
 #include <vector>
 
-#include "samplers/prior_source.h"
+#include "models/flow_prior.h"
 #include "models/flow_transformer.h"
-#include "samplers/flow_sampler.h"
+#include "models/prior_source.h"
 
 namespace mc {
 
@@ -131,6 +131,14 @@ ControlNetLosses controlnet_losses(const FlowControlNet& net, const torch::Tenso
                                    const torch::Tensor& t, const torch::Tensor& text, const torch::Tensor& mask,
                                    const torch::Tensor& cmask, const torch::Tensor& control_on,
                                    const std::string& weighting);
+// The same for a data-parallel shard's rows (train/batch_shard.h): each mean is
+// divided by the whole batch's count of valid entries (`fm_count`) and of controlled
+// entries (`ctrl_count`), so the shards' losses sum to the whole batch's.
+ControlNetLosses controlnet_losses(const FlowControlNet& net, const torch::Tensor& x1, const torch::Tensor& x0,
+                                   const torch::Tensor& t, const torch::Tensor& text, const torch::Tensor& mask,
+                                   const torch::Tensor& cmask, const torch::Tensor& control_on,
+                                   const std::string& weighting, const torch::Tensor& fm_count,
+                                   const torch::Tensor& ctrl_count);
 
 class Trainable;
 // The ControlNet inside a `flow_controlnet` trainer (nullptr for other models): tests

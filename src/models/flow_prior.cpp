@@ -1,5 +1,6 @@
 // The flow prior's text encoder, network bundle and trainer (model type
-// `flow_prior`): rectified-flow velocity regression with condition dropout.
+// `flow_prior`): rectified-flow velocity regression with condition dropout; the
+// trained prior loaded from its run directory, its guided velocity and normaliser.
 #include "models/flow_prior.h"
 
 #include <ATen/CPUGeneratorImpl.h>
@@ -12,7 +13,8 @@
 #include "core/error.h"
 #include "data/skeleton.h"
 #include "models/text_clip.h"
-#include "train/trainable.h"
+#include "models/trained_run.h"
+#include "models/trainable.h"
 
 namespace mc {
 namespace nn = torch::nn;
@@ -150,9 +152,10 @@ class FlowPriorTrainer : public Trainable {
   }
 
   // Flow-matching loss, eq. (3), masked to valid frames; t, x0, crops, captions
-  // and condition dropout all come from torch's generator (exact resume).
-  LossOutput loss(const std::vector<int64_t>& idx) override {
-    MotionBatch b = ctx_.data->batch(idx, ctx_.window, 1, ctx_.device, ctx_.trim_padding);
+  // and condition dropout all come from torch's generator (exact resume), drawn
+  // for the whole batch and cut to the shard's rows (train/batch_shard.h).
+  LossOutput loss(const std::vector<int64_t>& idx, const BatchShard& shard) override {
+    MotionBatch b = ctx_.data->batch(idx, ctx_.window, 1, ctx_.device, ctx_.trim_padding, shard);
     const MotionSet& set = ctx_.data->set();
     std::vector<std::string> caps;
     for (int64_t i : idx) {
@@ -160,15 +163,18 @@ class FlowPriorTrainer : public Trainable {
       caps.push_back(c[torch::randint(0, static_cast<int64_t>(c.size()), {1}).item<int64_t>()]);
     }
     const int64_t B = idx.size();
-    auto x0 = torch::randn(b.joints.sizes()).to(ctx_.device);
-    auto t = torch::rand({B}).to(ctx_.device);
-    auto drop = (torch::rand({B}) < cfg_.cond_drop).to(ctx_.device);
-    auto fl = flow_loss(b, caps, x0, t, drop, cfg_.loss)[0];
+    auto sizes = b.joints.sizes().vec();
+    sizes[0] = B;
+    auto x0 = shard.local(torch::randn(sizes)).to(ctx_.device);
+    auto t = shard.local(torch::rand({B})).to(ctx_.device);
+    auto drop = shard.local(torch::rand({B}) < cfg_.cond_drop).to(ctx_.device);
+    auto fl = flow_loss(b, shard.local(caps), x0, t, drop, cfg_.loss)[0];
     LossOutput out;
     out.loss = fl;
     out.parts = {{"fm", fl.detach()}};
     return out;
   }
+  bool shards_batches() const override { return true; }
 
   // Validation flow loss at fixed t (first caption, whole clips, a constant-seeded
   // local generator for x0): comparable across runs and leaves torch's RNG alone.
@@ -261,7 +267,9 @@ class FlowPriorTrainer : public Trainable {
     cond = torch::where(drop.unsqueeze(1), net_->null_condition(cond.size(0)), cond);
     auto out = net_->transformer->forward(xt, t, cond, b.mask).velocity;
     auto m = b.mask.view({b.mask.size(0), b.mask.size(1), 1, 1}).to(out.dtype());
-    auto denom = m.sum() * x1.size(2) * 3 + 1e-8;
+    // Means over the whole batch's valid frames (b.whole_mask): a shard's share.
+    auto wm = b.whole_mask.to(out.dtype());
+    auto denom = wm.sum() * x1.size(2) * 3 + 1e-8;
     auto mse = [&](const torch::Tensor& err) { return (err.pow(2) * m).sum() / denom; };
     // A clean network's velocity error is its clean error over max(1 - t, eps):
     // exactly the velocity error where 1 - t >= eps, and no target that pushes
@@ -280,7 +288,8 @@ class FlowPriorTrainer : public Trainable {
       const int64_t T = err.size(1);
       auto d = err.narrow(1, 1, T - 1) - err.narrow(1, 0, T - 1);
       auto pm = m.narrow(1, 1, T - 1) * m.narrow(1, 0, T - 1);
-      loss = loss + cfg_.smooth_weight * (d.pow(2) * pm).sum() / (pm.sum() * x1.size(2) * 3 + 1e-8);
+      auto wpm = wm.narrow(1, 1, T - 1) * wm.narrow(1, 0, T - 1);
+      loss = loss + cfg_.smooth_weight * (d.pow(2) * pm).sum() / (wpm.sum() * x1.size(2) * 3 + 1e-8);
     }
     return {loss};
   }
@@ -299,5 +308,101 @@ MC_REGISTER_MODEL("flow_prior", FlowPriorConfig,
                     return std::make_unique<FlowPriorTrainer>(dynamic_cast<const FlowPriorConfig&>(c), ctx);
                   },
                   "ACMDM-style text-conditioned flow prior on absolute joints (AdaLN-Zero transformer, RoPE)");
+
+// ---------------------------------------------------------------- the trained prior
+
+FlowPrior FlowPrior::load(const std::string& run_dir, torch::Device device) {
+  TrainedRun run = open_trained_run(
+      run_dir, {"flow prior", {"flow_prior"}, {"vocab.txt", "prior_meta.yaml"},
+                "train one with `motionctl train configs/prior/flow_tiny.yaml` or set prior.config to train it first"});
+  FlowPrior p;
+  p.run_dir_ = run_dir;
+  p.device_ = device;
+  p.cfg_ = run.model.as<FlowPriorConfig>();
+  p.vocab_ = std::make_shared<TextVocab>(run.vocab_words(), run.output("vocab.txt").string());
+  const std::string meta_path = run.output("prior_meta.yaml").string();
+  run.read_meta("prior_meta.yaml", [&](const YAML::Node& meta) {
+    p.fps_ = meta["fps"].as<double>();
+    p.t_max_ = meta["t_max"].as<int>();
+    p.data_path_ = meta["data"].as<std::string>("");
+    p.skeleton_ = skeleton_from_yaml_text(meta["skeleton"].as<std::string>(), meta_path);
+  });
+  p.net_ = std::make_shared<FlowPriorNet>(p.vocab_->size(), p.skeleton_.num_joints(), p.cfg_);
+  run.load_weights(**p.net_);
+  (*p.net_)->to(device);
+  (*p.net_)->eval();
+  return p;
+}
+
+FlowPrior FlowPrior::untrained(const FlowPriorConfig& cfg, const Skeleton& skeleton, int t_max, uint64_t seed,
+                               torch::Device device) {
+  FlowPrior p;
+  p.run_dir_ = "<untrained>";
+  p.device_ = device;
+  p.cfg_ = cfg;
+  p.skeleton_ = skeleton;
+  p.t_max_ = t_max;
+  std::vector<std::string> words = TextVocab::special_tokens();
+  for (const char* w : {"a", "person", "walks", "runs", "jumps", "forward", "waves", "left", "right", "hand"})
+    words.push_back(w);
+  p.vocab_ = std::make_shared<TextVocab>(words, "untrained prior");
+  torch::manual_seed(seed);
+  p.net_ = std::make_shared<FlowPriorNet>(p.vocab_->size(), skeleton.num_joints(), cfg);
+  {
+    torch::NoGradGuard ng;
+    // AdaLN-Zero starts at the identity; small random weights everywhere give a
+    // network that costs what a trained one costs and returns non-trivial velocities.
+    for (auto& w : (*p.net_)->parameters()) w.normal_(0.0, 0.02);
+    (*p.net_)->joint_mean.copy_(torch::tensor({0.0f, 0.9f, 0.0f}));
+    (*p.net_)->joint_std.copy_(torch::tensor({0.5f, 0.6f, 0.8f}));
+  }
+  (*p.net_)->to(device);
+  (*p.net_)->eval();
+  return p;
+}
+
+// ---------------------------------------------------------------- velocity
+
+torch::Tensor FlowPrior::encode_texts(const std::vector<std::string>& captions) const {
+  torch::NoGradGuard ng;
+  auto enc = encode_captions(*vocab_, captions, cfg_.max_words);
+  return (*net_)->encode_text(enc.ids.to(device_), enc.lengths.to(device_));
+}
+
+torch::Tensor FlowPrior::null_texts(int64_t B) const { return (*net_)->null_condition(B).detach(); }
+
+torch::Tensor FlowPrior::raw_velocity(const torch::Tensor& x, const torch::Tensor& t, const torch::Tensor& text,
+                                      const torch::Tensor& mask) const {
+  auto tt = t.to(x.device(), torch::kFloat32).reshape({-1}).expand({x.size(0)});
+  return (*net_)->to_velocity((*net_)->transformer->forward(x, tt, text, mask).velocity, x, tt);
+}
+
+torch::Tensor FlowPrior::velocity(const torch::Tensor& x, const torch::Tensor& t, const torch::Tensor& text,
+                                  const torch::Tensor& mask, double cfg_scale) const {
+  torch::NoGradGuard ng;
+  const int64_t B = x.size(0);
+  auto tt = t.to(x.device(), torch::kFloat32).reshape({-1}).expand({B});
+  auto v2 = raw_velocity(torch::cat({x, x}), torch::cat({tt, tt}), torch::cat({text, null_texts(B)}),
+                         torch::cat({mask, mask}));
+  auto vc = v2.narrow(0, 0, B), vu = v2.narrow(0, B, B);
+  auto v = vu + cfg_scale * (vc - vu);
+  // Only valid frames matter; padded rows are garbage by design but must not poison the check.
+  auto valid = mask.to(torch::kBool).view({B, -1, 1, 1}).expand_as(v);
+  if (!torch::isfinite(v.masked_select(valid)).all().item<bool>())
+    fail("the flow prior '{}' produced a non-finite velocity (at t = {}); the checkpoint is broken or diverged — "
+         "retrain it (lower optim.lr) before sampling",
+         run_dir_, tt[0].item<double>());
+  return v;
+}
+
+torch::Tensor FlowPrior::normalize(const torch::Tensor& world) const {
+  auto& n = *net_;
+  return (world - n->joint_mean.to(world.device())) / n->joint_std.to(world.device());
+}
+
+torch::Tensor FlowPrior::denormalize(const torch::Tensor& normed) const {
+  auto& n = *net_;
+  return normed * n->joint_std.to(normed.device()) + n->joint_mean.to(normed.device());
+}
 
 }  // namespace mc

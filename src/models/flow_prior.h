@@ -1,10 +1,14 @@
 // The text-conditioned flow prior (model type `flow_prior`): config, the jointly
-// trained text encoder and the network bundle a trained run stores in final.pt.
+// trained text encoder, the network bundle a trained run stores in final.pt, and
+// the trained prior loaded from its run directory (FlowPrior: classifier-free-guided
+// velocity and the normaliser between world and model units).
 #pragma once
+#include <memory>
 #include <string>
 #include <vector>
 
 #include "core/config.h"
+#include "data/skeleton.h"
 #include "data/text_vocab.h"
 #include "models/flow_transformer.h"
 #include "models/text_encoder.h"
@@ -102,5 +106,57 @@ struct FlowPriorNetImpl : torch::nn::Module {
   torch::Tensor joint_mean, joint_std;  // (3,) buffers
 };
 TORCH_MODULE(FlowPriorNet);
+
+// A finished `flow_prior` run: config.yaml, checkpoints/final.pt, outputs/vocab.txt,
+// outputs/prior_meta.yaml. All tensors in and out are on device() in normalised
+// units [B, T, J, 3] unless a name says world.
+class FlowPrior {
+ public:
+  // UserError naming the missing file, a wrong model type or an unreadable checkpoint.
+  static FlowPrior load(const std::string& run_dir, torch::Device device = torch::kCPU);
+  // A randomly initialised prior of the given size held in memory (no run
+  // directory): for benchmarks, whose timings do not depend on trained weights.
+  static FlowPrior untrained(const FlowPriorConfig& cfg, const Skeleton& skeleton, int t_max, uint64_t seed,
+                             torch::Device device = torch::kCPU);
+
+  // Pooled text vectors [B, text_width] of captions (the conditional input of velocity()).
+  torch::Tensor encode_texts(const std::vector<std::string>& captions) const;
+  // The null (unconditional) text vectors [B, text_width].
+  torch::Tensor null_texts(int64_t B) const;
+
+  // One network call: x [B, T, J, 3], t scalar or [B] in [0, 1], text [B, text_width]
+  // (from encode_texts or null_texts), mask [B, T] bool of valid frames.
+  torch::Tensor raw_velocity(const torch::Tensor& x, const torch::Tensor& t, const torch::Tensor& text,
+                             const torch::Tensor& mask) const;
+  // Classifier-free guided velocity v_u + s (v_c - v_u), conditional and unconditional
+  // halves in one forward of the doubled batch. UserError when the network output is
+  // not finite.
+  torch::Tensor velocity(const torch::Tensor& x, const torch::Tensor& t, const torch::Tensor& text,
+                         const torch::Tensor& mask, double cfg_scale) const;
+
+  torch::Tensor normalize(const torch::Tensor& world) const;    // per-axis z-score, [..., 3]
+  torch::Tensor denormalize(const torch::Tensor& normed) const;  // back to world metres
+
+  const FlowPriorConfig& config() const { return cfg_; }
+  const Skeleton& skeleton() const { return skeleton_; }
+  const TextVocab& vocab() const { return *vocab_; }
+  double fps() const { return fps_; }
+  int t_max() const { return t_max_; }
+  int num_joints() const { return skeleton_.num_joints(); }
+  const std::string& run_dir() const { return run_dir_; }
+  const std::string& data_path() const { return data_path_; }  // the motion file it was trained on
+  torch::Device device() const { return device_; }
+  FlowPriorNet& net() const { return *net_; }
+
+ private:
+  std::shared_ptr<FlowPriorNet> net_;
+  std::shared_ptr<TextVocab> vocab_;
+  FlowPriorConfig cfg_;
+  Skeleton skeleton_;
+  double fps_ = 20;
+  int t_max_ = 196;
+  std::string run_dir_, data_path_;
+  torch::Device device_ = torch::kCPU;
+};
 
 }  // namespace mc

@@ -55,7 +55,7 @@ FlowAttentionImpl::FlowAttentionImpl(const FlowTransformerOptions& o)
   proj = register_module("proj", nn::Linear(o.width, o.width));
   q_norm = register_module("q_norm", RMSNorm(head_dim));
   k_norm = register_module("k_norm", RMSNorm(head_dim));
-  attn_drop = register_module("attn_drop", nn::Dropout(o.dropout));
+  attn_drop = register_module("attn_drop", ShardedDropout(o.dropout));
 }
 
 std::array<torch::Tensor, 3> FlowAttentionImpl::project(const torch::Tensor& x, const torch::Tensor& positions) {
@@ -87,7 +87,7 @@ SwiGLUImpl::SwiGLUImpl(int64_t dim, int64_t hidden, double dropout) {
   w1 = register_module("w1", nn::Linear(dim, hidden));
   w3 = register_module("w3", nn::Linear(dim, hidden));
   w2 = register_module("w2", nn::Linear(hidden, dim));
-  drop = register_module("drop", nn::Dropout(dropout));
+  drop = register_module("drop", ShardedDropout(dropout));
 }
 
 torch::Tensor SwiGLUImpl::forward(const torch::Tensor& x) { return w2(drop(torch::silu(w1(x)) * w3(x))); }

@@ -5,6 +5,8 @@
 
 #include <array>
 
+#include "models/sharded_dropout.h"
+
 namespace mc {
 
 // Root-mean-square layer norm (LibTorch 1.13 has none): x / rms(x) * weight.
@@ -54,7 +56,7 @@ struct FlowAttentionImpl : torch::nn::Module {
   torch::Tensor scores(const torch::Tensor& x, const torch::Tensor& positions);
   torch::nn::Linear qkv{nullptr}, proj{nullptr};
   RMSNorm q_norm{nullptr}, k_norm{nullptr};
-  torch::nn::Dropout attn_drop{nullptr};
+  ShardedDropout attn_drop{nullptr};
   int64_t heads, head_dim;
   double rope_base;
 
@@ -67,7 +69,7 @@ struct SwiGLUImpl : torch::nn::Module {
   SwiGLUImpl(int64_t dim, int64_t hidden, double dropout);
   torch::Tensor forward(const torch::Tensor& x);  // w2(silu(w1 x) * w3 x)
   torch::nn::Linear w1{nullptr}, w3{nullptr}, w2{nullptr};
-  torch::nn::Dropout drop{nullptr};
+  ShardedDropout drop{nullptr};
 };
 TORCH_MODULE(SwiGLU);
 

@@ -3,7 +3,7 @@
 // training loop trains a real model; also a useful smoothness/compression probe.
 #include "core/error.h"
 #include "models/conv_motion.h"
-#include "train/trainable.h"
+#include "models/trainable.h"
 
 namespace mc {
 namespace {
@@ -50,21 +50,26 @@ class MotionAutoencoderTrainer : public Trainable {
   }
   torch::nn::Module& module() override { return *model_; }
 
-  LossOutput loss(const std::vector<int64_t>& idx) override {
-    MotionBatch b = ctx_.data->batch(idx, ctx_.window, stride_, ctx_.device);
+  // Shard rows (train/batch_shard.h): crops drawn for the whole batch, means over
+  // the whole batch's valid frames.
+  LossOutput loss(const std::vector<int64_t>& idx, const BatchShard& shard) override {
+    MotionBatch b = ctx_.data->batch(idx, ctx_.window, stride_, ctx_.device, false, shard);
     auto x = b.joints.flatten(2);  // [B, T, J*3]
     auto m = b.mask.unsqueeze(-1).to(x.dtype());
+    auto wm = b.whole_mask.unsqueeze(-1).to(x.dtype());
     auto y = model_->forward(x);
-    auto denom = m.sum() * x.size(2) + 1e-8;
+    auto denom = wm.sum() * x.size(2) + 1e-8;
     auto rec = ((y - x).pow(2) * m).sum() / denom;
     auto mv = m.slice(1, 1) * m.slice(1, 0, -1);
+    auto wmv = wm.slice(1, 1) * wm.slice(1, 0, -1);
     auto dv = (y.diff(1, 1) - x.diff(1, 1)).pow(2);
-    auto vel = (dv * mv).sum() / (mv.sum() * x.size(2) + 1e-8);
+    auto vel = (dv * mv).sum() / (wmv.sum() * x.size(2) + 1e-8);
     LossOutput out;
     out.loss = rec + cfg_.velocity_weight * vel;
     out.parts = {{"rec", rec.detach()}, {"vel", vel.detach()}};
     return out;
   }
+  bool shards_batches() const override { return true; }
 
   // Validation reconstruction MPJPE in metres, whole clips.
   std::map<std::string, double> evaluate() override {

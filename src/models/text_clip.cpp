@@ -9,14 +9,17 @@
 #include <algorithm>
 #include <cmath>
 #include <fstream>
+#include <optional>
 #include <ostream>
 
 #include "core/atomic_file.h"
 #include "core/error.h"
 #include "models/flow_transformer.h"
+#include "models/sharded_dropout.h"
 #include "models/token_prior.h"
-#include "train/trainable.h"
-#include "train/trainer.h"
+#include "core/trained_runs.h"
+#include "models/trainable.h"
+#include "models/trained_run.h"
 
 namespace mc {
 namespace nn = torch::nn;
@@ -85,7 +88,7 @@ torch::Tensor ClipMotionEncoderImpl::forward(const torch::Tensor& joints, const 
   feats = feats.reshape({B, N, stride * J * 9});
   auto pos = torch::arange(N, torch::TensorOptions().dtype(torch::kFloat32).device(joints.device()));
   auto h = input(feats) + timestep_sinusoid(pos, width).unsqueeze(0);
-  h = encoder->forward(h.transpose(0, 1), torch::Tensor(), tok_valid.logical_not()).transpose(0, 1);
+  h = transformer_encoder_forward(*encoder, h.transpose(0, 1), tok_valid.logical_not()).transpose(0, 1);
   auto w = tok_valid.unsqueeze(-1).to(h.dtype());
   auto pooled = (h * w).sum(1) / w.sum(1).clamp_min(1.0);
   return out(norm(pooled));
@@ -154,25 +157,15 @@ std::vector<double> clip_retrieval(const torch::Tensor& text, const torch::Tenso
 // ---------------------------------------------------------------- runs
 
 TextClipRun read_text_clip_run(const std::string& run_dir) {
-  fs::path dir(run_dir);
-  if (!fs::is_directory(dir))
-    fail("text_clip run directory '{}' does not exist; train one with `motionctl train "
-         "configs/text/text_clip_tiny.yaml` or set model.text_encoder.config to train it on demand",
-         run_dir);
-  for (const fs::path& p : {dir / "config.yaml", dir / "checkpoints" / "final.pt", dir / "outputs" / "vocab.txt"})
-    if (!fs::exists(p))
-      fail("text_clip run '{}' is incomplete: '{}' is missing; finish it with `motionctl train {}/config.yaml`",
-           run_dir, p.string(), run_dir);
-  TrainJobConfig job;
-  parse_config(compose_config((dir / "config.yaml").string()), job);
-  if (job.model.type != "text_clip")
-    fail("'{}' is a run of model type '{}', not a contrastive text encoder (text_clip)", run_dir, job.model.type);
+  TrainedRun run = open_trained_run(
+      run_dir, {"contrastive text encoder", {"text_clip"}, {"vocab.txt"},
+                "train one with `motionctl train configs/text/text_clip_tiny.yaml` or set model.text_encoder.config "
+                "to train it first"});
   TextClipRun r;
   r.run_dir = run_dir;
-  r.cfg = job.model.as<TextClipConfig>();
-  std::ifstream f(dir / "outputs" / "vocab.txt");
-  for (std::string w; std::getline(f, w);) r.vocab.push_back(w);
-  TextVocab check(r.vocab, (dir / "outputs" / "vocab.txt").string());  // UserError when malformed
+  r.cfg = run.model.as<TextClipConfig>();
+  r.vocab = run.vocab_words();
+  TextVocab check(r.vocab, run.output("vocab.txt").string());  // UserError when malformed
   (void)check;
   return r;
 }
@@ -183,9 +176,7 @@ std::string resolve_text_clip_run(const TextEncoderSourceConfig& src, std::ostre
     return src.run_dir;
   }
   if (src.config.empty()) fail("model.text_encoder: set run_dir (a finished text_clip run) or config");
-  std::string dir = train_on_demand(src.config, src.overrides);
-  if (log) *log << fmt::format("text encoder: {} (from {})\n", dir, src.config);
-  return dir;
+  return trained_run("model.text_encoder", src.run_dir, src.config, src.overrides);
 }
 
 void load_text_clip_encoder(const TextClipRun& run, torch::nn::Module& enc, const TextEncoderOptions& want,
@@ -235,25 +226,34 @@ class TextClipTrainer : public Trainable {
   nn::Module& module() override { return *net_; }
 
   // One random caption per clip, each clip once (a batch that wraps an epoch could
-  // hold one twice, which would be its own negative).
-  LossOutput loss(const std::vector<int64_t>& idx_in) override {
+  // hold one twice, which would be its own negative). A data-parallel shard embeds
+  // its rows of the deduplicated batch, gathers every rank's embeddings and computes
+  // the whole batch's InfoNCE (train/batch_shard.h: replicated, the temperature
+  // shared), so its gradient is the one-process gradient through its own rows.
+  LossOutput loss(const std::vector<int64_t>& idx_in, const BatchShard& shard) override {
     std::vector<int64_t> idx;
     for (int64_t i : idx_in)
       if (std::find(idx.begin(), idx.end(), i) == idx.end()) idx.push_back(i);
-    MotionBatch b = ctx_.data->batch(idx, ctx_.window, 1, ctx_.device, ctx_.trim_padding);
+    const int64_t n = idx.size();
+    std::optional<BatchRowsScope> rows;  // dropout over the deduplicated batch's rows
+    if (!shard.whole()) rows.emplace(shard.rows(n));
+    MotionBatch b = ctx_.data->batch(idx, ctx_.window, 1, ctx_.device, ctx_.trim_padding, shard);
     const MotionSet& set = ctx_.data->set();
     std::vector<std::string> caps;
     for (int64_t i : idx) {
       const auto& c = set.captions[i];
       caps.push_back(c[torch::randint(0, static_cast<int64_t>(c.size()), {1}).item<int64_t>()]);
     }
-    auto [text, motion] = embed(b, caps);
-    auto l = clip_infonce(text, motion, net_->scale(), same_caption_matrix(caps));
+    auto [text, motion] = embed(b, shard.local(caps));
+    auto scale = shard.shared(net_->scale());
+    auto l = shard.replicated(
+        clip_infonce(shard.gather(text, n), shard.gather(motion, n), scale, same_caption_matrix(caps)));
     LossOutput out;
     out.loss = l;
-    out.parts = {{"nce", l.detach()}, {"logit_scale", net_->scale().detach()}};
+    out.parts = {{"nce", l.detach()}, {"logit_scale", shard.replicated(net_->scale().detach())}};
     return out;
   }
+  bool shards_batches() const override { return true; }
 
   // Whole val clips with their first caption, in pools of eval_pool: the InfoNCE
   // loss per pool and text->motion retrieval top-1/top-3 (R-precision's convention;

@@ -113,8 +113,8 @@ struct TextClipRun {
 // UserError naming the missing file or a wrong model type.
 TextClipRun read_text_clip_run(const std::string& run_dir);
 
-// The run `src` names: run_dir, or config trained on demand (torch's generator and
-// thread count left as they were). `log` (may be null) gets one line.
+// The run `src` names: run_dir, or the run of its config the job resolved
+// (train/dependencies.h trains it first). `log` (may be null) gets one line.
 std::string resolve_text_clip_run(const TextEncoderSourceConfig& src, std::ostream* log);
 
 // Loads the run's text encoder weights into `enc` (a TextEncoder, or any module with

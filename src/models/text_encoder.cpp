@@ -2,6 +2,8 @@
 // batching.
 #include "models/text_encoder.h"
 
+#include "models/sharded_dropout.h"
+
 namespace mc {
 namespace nn = torch::nn;
 
@@ -27,7 +29,7 @@ torch::Tensor TextEncoderImpl::forward(const torch::Tensor& ids, const torch::Te
   auto pos = torch::arange(L, torch::TensorOptions().dtype(torch::kInt64).device(dev));
   auto h = embedding(ids) + position(pos).unsqueeze(0);          // [B, L, E]
   auto valid = pos.unsqueeze(0) < lengths.to(dev).unsqueeze(1);  // [B, L]
-  h = encoder->forward(h.transpose(0, 1), torch::Tensor(), valid.logical_not()).transpose(0, 1);
+  h = transformer_encoder_forward(*encoder, h.transpose(0, 1), valid.logical_not()).transpose(0, 1);
   // Mean over the real tokens: every word counts, unlike a last-token readout
   // which a post-norm encoder this shallow tends to wash out.
   auto m = valid.unsqueeze(-1).to(h.dtype());

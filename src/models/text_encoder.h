@@ -8,6 +8,7 @@
 #include <torch/torch.h>
 
 #include "core/config.h"
+#include "core/trained_runs.h"
 #include "data/text_vocab.h"
 
 namespace mc {
@@ -44,7 +45,7 @@ EncodedCaptions encode_captions(const TextVocab& vocab, const std::vector<std::s
 // config, trained on demand) whose text encoder replaces the jointly trained one.
 // Off (both empty, the default) it is left out of the dumped config, so every run
 // trained before the switch existed keeps its name and hash.
-struct TextEncoderSourceConfig : Config {
+struct TextEncoderSourceConfig : Config, DeclaresDependencies {
   std::string run_dir;                 // a finished text_clip run; wins over `config`
   std::string config;                  // else its training config, trained first when not finished
   std::vector<std::string> overrides;  // overrides for `config`
@@ -59,6 +60,7 @@ struct TextEncoderSourceConfig : Config {
       "true: its weights stay fixed (no gradient, eval mode, not optimised) and a trainable adapter maps its "
       "pooled vector to the condition; false: they initialise the prior's encoder and train with it");
   }
+  void dependencies(DependencyVisitor& d) override { d("model.text_encoder", run_dir, config, overrides); }
   bool enabled() const { return !run_dir.empty() || !config.empty(); }
   bool omitted_from_dump() const override { return !enabled(); }
   std::string validate() const override {

@@ -1,5 +1,6 @@
 // The token priors' configs, text encoder and network bundle, the TMD corruption
-// maths, and one trainer for both `tmd_prior` (eqs. (17)-(20)) and `masked_prior`.
+// maths, one trainer for both `tmd_prior` (eqs. (17)-(20)) and `masked_prior`, and
+// the trained prior loaded from its run directory.
 #include "models/token_prior.h"
 
 #include <ATen/CPUGeneratorImpl.h>
@@ -7,16 +8,17 @@
 
 #include <algorithm>
 #include <cmath>
-#include <mutex>
 
 #include "core/atomic_file.h"
 #include "core/error.h"
 #include "data/skeleton.h"
 #include "data/text_vocab.h"
 #include "models/flow_prior.h"
+#include "models/sharded_dropout.h"
+#include "models/trained_run.h"
 #include "models/vq_tokenizer.h"
-#include "train/train_job.h"
-#include "train/trainable.h"
+#include "core/trained_runs.h"
+#include "models/trainable.h"
 
 namespace mc {
 namespace nn = torch::nn;
@@ -188,7 +190,7 @@ TextContext TokenTextEncoderImpl::forward(const torch::Tensor& ids, const torch:
   auto pos = torch::arange(L, torch::TensorOptions().dtype(torch::kInt64).device(dev));
   auto h = embedding(ids) + position(pos).unsqueeze(0);
   auto valid = pos.unsqueeze(0) < lengths.to(dev).unsqueeze(1);  // [B, W]
-  h = encoder->forward(h.transpose(0, 1), torch::Tensor(), valid.logical_not()).transpose(0, 1);
+  h = transformer_encoder_forward(*encoder, h.transpose(0, 1), valid.logical_not()).transpose(0, 1);
   auto m = valid.unsqueeze(-1).to(h.dtype());
   TextContext c;
   c.pooled = out(norm((h * m).sum(1) / m.sum(1).clamp_min(1.0)));
@@ -263,28 +265,8 @@ TokenizedClips tokenize_clips(VqTokenizerImpl& tok, const MotionSet& set, torch:
   return out;
 }
 
-std::string train_on_demand(const std::string& config, const std::vector<std::string>& overrides) {
-  // A run that trains reseeds torch and sets its thread count, one that is already done
-  // does not: restoring both keeps the caller's random stream independent of which.
-  auto gen = at::detail::getDefaultCPUGenerator();
-  torch::Tensor state;
-  {
-    std::lock_guard<std::mutex> lock(gen.mutex());
-    state = gen.get_state();
-  }
-  const int threads = torch::get_num_threads();
-  auto dir = run_train(config, overrides).run_dir.string();
-  {
-    std::lock_guard<std::mutex> lock(gen.mutex());
-    gen.set_state(state);
-  }
-  torch::set_num_threads(threads);
-  return dir;
-}
-
 std::string resolve_tokenizer_run(const TokenPriorConfig& c) {
-  if (!c.tokenizer_run.empty()) return c.tokenizer_run;
-  return train_on_demand(c.tokenizer_config, c.tokenizer_overrides);
+  return trained_run("model.tokenizer", c.tokenizer_run, c.tokenizer_config, c.tokenizer_overrides);
 }
 
 // ---------------------------------------------------------------- trainer
@@ -328,7 +310,10 @@ class TokenPriorTrainer : public Trainable {
   }
   nn::Module& module() override { return *net_; }
 
-  LossOutput loss(const std::vector<int64_t>& idx) override {
+  // Captions, t, drops, masking noise and corruptions are drawn for the whole batch
+  // (train/batch_shard.h); a shard's CE and accuracy divide by the whole batch's
+  // target-token count.
+  LossOutput loss(const std::vector<int64_t>& idx, const BatchShard& shard) override {
     const MotionSet& set = ctx_.data->set();
     std::vector<std::string> caps;
     for (int64_t i : idx) {
@@ -340,12 +325,13 @@ class TokenPriorTrainer : public Trainable {
     auto drop = torch::rand({B}) < cfg().cond_drop;
     torch::Tensor noise;  // masked prior: the random ranks choosing masked positions
     if (!tmd_) noise = torch::rand({B, tokens_.size(1)});
-    auto r = token_loss(idx, caps, t, drop, noise, nullptr);
+    auto r = token_loss(idx, caps, t, drop, noise, nullptr, shard);
     LossOutput out;
     out.loss = r.ce;
     out.parts = {{"ce", r.ce.detach()}, {"acc", r.acc}};
     return out;
   }
+  bool shards_batches() const override { return true; }
 
   // Validation CE at fixed times (first caption, corruption from a constant-seeded
   // local generator): comparable across runs and leaves torch's RNG alone.
@@ -431,10 +417,15 @@ class TokenPriorTrainer : public Trainable {
 
   // eq. (20) averaged over the tokens it covers: all valid tokens (TMD) or the masked
   // ones (masked baseline). gen = nullptr draws TMD corruptions from torch's generator.
+  // Inputs are the whole batch's; a shard computes its rows (corruptions drawn for
+  // all of them) and its share: CE and accuracy summed over its targets and divided
+  // by the whole batch's target count.
   TokenLoss token_loss(const std::vector<int64_t>& idx, const std::vector<std::string>& caps, const torch::Tensor& t,
-                       const torch::Tensor& drop, const torch::Tensor& noise, at::Generator* gen) {
+                       const torch::Tensor& drop, const torch::Tensor& noise, at::Generator* gen,
+                       const BatchShard& shard = {}) {
     const auto dev = ctx_.device;
-    const int64_t B = idx.size(), L = tokens_.size(1);
+    const int64_t Bw = idx.size(), L = tokens_.size(1);
+    const int64_t B = shard.rows(Bw).size();
     auto ix = torch::tensor(idx, torch::kInt64);
     auto x1 = tokens_.index_select(0, ix).to(dev);
     auto n = token_lengths_.index_select(0, ix);
@@ -443,32 +434,44 @@ class TokenPriorTrainer : public Trainable {
     if (tmd_) {
       // eq. (19): z_t,n ~ q_t(. | z_1,n) per token, t ~ U[0, 1 - eps).
       tt = (t * (1 - tmd_->t_eps)).to(dev);
-      auto probs = tmd_path_probs(net_->distance, x1, tmd_beta(tt, tmd_->beta_c, tmd_->beta_a).view({B, 1}));
-      auto flat = probs.reshape({B * L, K_}).to(torch::kCPU);
+      auto probs = tmd_path_probs(net_->distance, x1, tmd_beta(tt, tmd_->beta_c, tmd_->beta_a).view({Bw, 1}));
+      auto flat = probs.reshape({Bw * L, K_}).to(torch::kCPU);
       auto draw = gen ? torch::multinomial(flat, 1, false, *gen) : torch::multinomial(flat, 1);
-      xin = draw.view({B, L}).to(dev);
+      xin = draw.view({Bw, L}).to(dev);
       target_mask = valid;
     } else {
       // MoMask: mask round(n cos(pi t / 2)) >= 1 random valid tokens.
-      auto counts = torch::zeros({B}, torch::kInt64);
+      auto counts = torch::zeros({Bw}, torch::kInt64);
       auto ta = t.accessor<float, 1>();
-      for (int64_t b = 0; b < B; ++b) counts[b] = masked_train_count(n[b].item<int64_t>(), ta[b]);
+      for (int64_t b = 0; b < Bw; ++b) counts[b] = masked_train_count(n[b].item<int64_t>(), ta[b]);
       auto scores = noise.masked_fill(valid.to(torch::kCPU).logical_not(), 2.0);
       auto ranks = scores.argsort(int64_t{1}).argsort(int64_t{1});  // continuous noise: ties have probability 0
       target_mask = (ranks < counts.unsqueeze(1)).to(dev);
       xin = torch::where(target_mask, torch::full_like(x1, net_->transformer->mask_id()), x1);
     }
-    auto enc = encode_captions(vocab_, caps, cfg().max_words);
+    const double whole_count = target_mask.sum().item<double>();
+    x1 = shard.local(x1);
+    valid = shard.local(valid);
+    xin = shard.local(xin);
+    target_mask = shard.local(target_mask);
+    if (tt.defined()) tt = shard.local(tt);
+    auto enc = encode_captions(vocab_, shard.local(caps), cfg().max_words);
     auto text = net_->encode_text(enc.ids.to(dev), enc.lengths.to(dev));
-    text = net_->drop_condition(text, drop.to(dev));
+    text = net_->drop_condition(text, shard.local(drop).to(dev));
     auto logits = net_->transformer->forward(xin, tt, text, valid).logits;  // [B, L, K]
     auto sel = target_mask.reshape({-1});
     auto lg = logits.reshape({B * L, K_}).index({sel});
     auto tg = x1.reshape({-1}).index({sel});
     TokenLoss r;
-    r.ce = F::cross_entropy(lg, tg);
-    r.acc = (lg.argmax(-1) == tg).to(torch::kFloat32).mean().detach();
-    r.count = static_cast<double>(tg.size(0));
+    if (shard.whole()) {
+      r.ce = F::cross_entropy(lg, tg);
+      r.acc = (lg.argmax(-1) == tg).to(torch::kFloat32).mean().detach();
+    } else {
+      const double denom = std::max(1.0, whole_count);
+      r.ce = F::cross_entropy(lg, tg, F::CrossEntropyFuncOptions().reduction(torch::kSum)) / denom;
+      r.acc = (lg.argmax(-1) == tg).to(torch::kFloat32).sum().detach() / denom;
+    }
+    r.count = whole_count;
     return r;
   }
 
@@ -496,5 +499,97 @@ MC_REGISTER_MODEL("tmd_prior", TmdPriorConfig, make_token_trainer,
                   "AnchorRoute's TMD prior: metric discrete flow over VQ tokens, dual-context text (eqs. (17)-(20))");
 MC_REGISTER_MODEL("masked_prior", MaskedPriorConfig, make_token_trainer,
                   "MoMask-style masked token prior (cosine masking) on the TMD backbone and tokenizer");
+
+// ---------------------------------------------------------------- the trained prior
+
+TokenPrior TokenPrior::load(const std::string& run_dir, torch::Device device) {
+  TrainedRun run = open_trained_run(
+      run_dir, {"token prior", {"tmd_prior", "masked_prior"}, {"vocab.txt", "prior_meta.yaml"},
+                "train one with `motionctl train configs/tmd/tmd_tiny.yaml` (or configs/masked/masked_tiny.yaml), "
+                "or set prior_config to train it first"});
+  TokenPrior p;
+  p.run_dir_ = run_dir;
+  p.device_ = device;
+  p.cfg_ = std::dynamic_pointer_cast<TokenPriorConfig>(run.model.cfg);
+  p.vocab_ = std::make_shared<TextVocab>(run.vocab_words(), run.output("vocab.txt").string());
+  std::string tokenizer_run;
+  int64_t K = 0;
+  run.read_meta("prior_meta.yaml", [&](const YAML::Node& meta) {
+    p.t_max_ = meta["t_max"].as<int>();
+    tokenizer_run = meta["tokenizer_run"].as<std::string>();
+    K = meta["codebook_size"].as<int64_t>();
+  });
+  p.tok_ = load_vq_tokenizer(tokenizer_run, device);
+  if (p.tok_.model->codebook_size() != K)
+    fail("token prior '{}' was trained on {} codes but its tokenizer '{}' now has {}; retrain the prior", run_dir, K,
+         tokenizer_run, p.tok_.model->codebook_size());
+  p.net_ = std::make_shared<TokenPriorNet>(p.vocab_->size(), K, *p.cfg_);
+  run.load_weights(**p.net_);
+  (*p.net_)->to(device);
+  (*p.net_)->eval();
+  // The codes the prior learned are only meaningful with the codebook it was trained on.
+  torch::Tensor d_now;
+  if (auto* t = dynamic_cast<const TmdPriorConfig*>(p.cfg_.get()))
+    d_now = tmd_path_table(p.tok_.model->codebook(), t->path, t->beta_c, t->beta_a).dist.to(device);
+  else
+    d_now = p.tok_.model->token_distance_table().to(device);
+  if (!torch::allclose((*p.net_)->distance, d_now, 1e-4, 1e-4))
+    fail("the tokenizer '{}' no longer has the codebook token prior '{}' was trained with (distance tables differ); "
+         "retrain the prior on this tokenizer",
+         tokenizer_run, run_dir);
+  return p;
+}
+
+const TmdPriorConfig& TokenPrior::tmd_config() const {
+  auto* t = dynamic_cast<const TmdPriorConfig*>(cfg_.get());
+  if (!t) throw std::logic_error("token prior '" + run_dir_ + "' is a masked prior, not TMD");
+  return *t;
+}
+
+// ---------------------------------------------------------------- logits
+
+TextContext TokenPrior::encode_texts(const std::vector<std::string>& captions) const {
+  torch::NoGradGuard ng;
+  auto enc = encode_captions(*vocab_, captions, cfg_->max_words);
+  return (*net_)->encode_text(enc.ids.to(device_), enc.lengths.to(device_));
+}
+
+TextContext TokenPrior::null_texts(int64_t B, int64_t W) const {
+  torch::NoGradGuard ng;
+  return (*net_)->null_context(B, W);
+}
+
+torch::Tensor TokenPrior::raw_logits(const torch::Tensor& ids, const torch::Tensor& t, const TextContext& text,
+                                     const torch::Tensor& valid, const TokenTransformerHooks* hooks) const {
+  torch::Tensor tt;
+  if (is_tmd()) tt = t.to(device_, torch::kFloat32).reshape({-1}).expand({ids.size(0)});
+  return (*net_)->transformer->forward(ids.to(device_), tt, text, valid.to(device_), hooks).logits;
+}
+
+torch::Tensor TokenPrior::guided_logits(const torch::Tensor& ids, const torch::Tensor& t, const TextContext& text,
+                                        const torch::Tensor& valid, double cfg_scale,
+                                        const TokenTransformerHooks* hooks) const {
+  torch::NoGradGuard ng;
+  const int64_t B = ids.size(0), W = text.memory.size(1);
+  torch::Tensor tt;
+  if (is_tmd()) tt = t.to(device_, torch::kFloat32).reshape({-1}).expand({B});
+  // Hooks in both halves unless hooks->guidance says otherwise (AnchorRoute's anchor guidance).
+  auto l = guided_token_logits(*(*net_)->transformer, ids.to(device_), tt, text, null_texts(B, W), valid.to(device_),
+                               cfg_scale, hooks);
+  auto v = valid.to(device_, torch::kBool).unsqueeze(-1).expand_as(l);
+  if (!torch::isfinite(l.masked_select(v)).all().item<bool>())
+    fail("the token prior '{}' produced non-finite logits; the checkpoint is broken or diverged — retrain it "
+         "(lower optim.lr) before sampling",
+         run_dir_);
+  return l;
+}
+
+torch::Tensor TokenPrior::decode_world(const torch::Tensor& ids) const {
+  torch::NoGradGuard ng;
+  const int64_t L = ids.size(0);
+  VqTokenizer model = tok_.model;  // a handle: decode() is not const
+  auto x = model->decode(ids.to(device_).view({1, L}));  // [1, L*s, J*3] normalised
+  return tok_.model->denormalize(x.view({L * stride(), num_joints(), 3})).to(torch::kCPU);
+}
 
 }  // namespace mc

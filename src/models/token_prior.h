@@ -1,20 +1,26 @@
 // AnchorRoute's tokenised text-to-motion priors over a VQ tokenizer's codes: TMD
 // (model type `tmd_prior`, metric discrete flow, §3.3) and the MoMask-style masked
 // baseline (`masked_prior`): configs, the dual-context text encoder, the network bundle
-// of final.pt and the corruption maths both the trainer and the samplers use.
+// of final.pt, the corruption maths both the trainer and the samplers use, and the
+// trained prior loaded from its run directory with its tokenizer (TokenPrior: CFG on
+// logits, decoding to world joints).
 #pragma once
+#include <memory>
 #include <string>
 #include <vector>
 
 #include "core/config.h"
+#include "core/trained_runs.h"
 #include "data/motion_set.h"
+#include "data/skeleton.h"
+#include "data/text_vocab.h"
 #include "models/token_transformer.h"
 #include "models/vq_tokenizer.h"
 
 namespace mc {
 
 // `model:` section shared by both token priors; the subclasses pick the type.
-struct TokenPriorConfig : Config {
+struct TokenPriorConfig : Config, DeclaresDependencies {
   int depth = 8;
   int width = 384;
   int heads = 6;
@@ -35,6 +41,9 @@ struct TokenPriorConfig : Config {
   std::vector<double> eval_t = {0.1, 0.3, 0.5, 0.7, 0.9};
 
   void visit(FieldVisitor& v) override;
+  void dependencies(DependencyVisitor& d) override {
+    d("model.tokenizer", tokenizer_run, tokenizer_config, tokenizer_overrides);
+  }
   std::string validate() const override;
   virtual bool is_tmd() const = 0;
   TokenTransformerOptions transformer_options(int64_t num_codes) const;
@@ -161,12 +170,58 @@ struct TokenizedClips {
 };
 TokenizedClips tokenize_clips(VqTokenizerImpl& tokenizer, const MotionSet& set, torch::Device device);
 
-// run_train(config, overrides).run_dir, leaving torch's CPU generator state and thread
-// count as they were (a run that trains reseeds both; a finished one does not).
-std::string train_on_demand(const std::string& config, const std::vector<std::string>& overrides);
-
-// The run directory of the tokenizer a token-prior config names (tokenizer_run, or
-// tokenizer_config trained on demand with run_train).
+// The run directory of the tokenizer a token-prior config names: tokenizer_run, or
+// the run of tokenizer_config the job resolved (core/trained_runs.h).
 std::string resolve_tokenizer_run(const TokenPriorConfig& c);
+
+// A finished `tmd_prior` or `masked_prior` run (config.yaml, checkpoints/final.pt,
+// outputs/vocab.txt, outputs/prior_meta.yaml) and the tokenizer run it names.
+class TokenPrior {
+ public:
+  // UserError naming a missing file, a wrong model type, an unreadable checkpoint or a
+  // tokenizer whose codebook no longer matches the one the prior was trained with.
+  static TokenPrior load(const std::string& run_dir, torch::Device device = torch::kCPU);
+
+  TextContext encode_texts(const std::vector<std::string>& captions) const;
+  TextContext null_texts(int64_t B, int64_t W) const;
+
+  // One network call: ids [B, L], t [B] or scalar (ignored by the masked prior), valid [B, L].
+  torch::Tensor raw_logits(const torch::Tensor& ids, const torch::Tensor& t, const TextContext& text,
+                           const torch::Tensor& valid, const TokenTransformerHooks* hooks = nullptr) const;
+  // l_u + s (l_c - l_u), both halves in one doubled forward (hooks, if any, are given
+  // for B rows; hooks->guidance says which passes get them: guided_token_logits).
+  // UserError when a valid position's logits are not finite.
+  torch::Tensor guided_logits(const torch::Tensor& ids, const torch::Tensor& t, const TextContext& text,
+                              const torch::Tensor& valid, double cfg_scale,
+                              const TokenTransformerHooks* hooks = nullptr) const;
+  // Tokens [L] of one motion -> world joints [L * stride, J, 3] (CPU).
+  torch::Tensor decode_world(const torch::Tensor& ids) const;
+
+  bool is_tmd() const { return cfg_->is_tmd(); }
+  const TokenPriorConfig& config() const { return *cfg_; }
+  const TmdPriorConfig& tmd_config() const;  // logic_error for a masked prior
+  const LoadedVqTokenizer& tokenizer() const { return tok_; }
+  torch::Tensor distance() const { return (*net_)->distance; }  // [K, K]
+  int64_t codebook_size() const { return tok_.model->codebook_size(); }
+  int64_t stride() const { return tok_.model->stride(); }
+  int64_t max_tokens() const { return (t_max_ + stride() - 1) / stride(); }
+  const Skeleton& skeleton() const { return tok_.skeleton; }
+  const TextVocab& vocab() const { return *vocab_; }
+  double fps() const { return tok_.fps; }
+  int t_max() const { return t_max_; }
+  int num_joints() const { return skeleton().num_joints(); }
+  const std::string& run_dir() const { return run_dir_; }
+  torch::Device device() const { return device_; }
+  TokenPriorNet& net() const { return *net_; }
+
+ private:
+  std::shared_ptr<TokenPriorNet> net_;
+  std::shared_ptr<TextVocab> vocab_;
+  std::shared_ptr<TokenPriorConfig> cfg_;
+  LoadedVqTokenizer tok_;
+  int t_max_ = 196;
+  std::string run_dir_;
+  torch::Device device_ = torch::kCPU;
+};
 
 }  // namespace mc

@@ -39,7 +39,7 @@ torch::Tensor split_heads(const torch::Tensor& x, int64_t heads, int64_t head_di
 
 // softmax(q k^T / sqrt(Dh)) v over keys where key_valid [B, N] is true; -> [B, Lq, H*Dh].
 torch::Tensor attend(const torch::Tensor& q, const torch::Tensor& k, const torch::Tensor& v,
-                     const torch::Tensor& key_valid, nn::Dropout& drop) {
+                     const torch::Tensor& key_valid, ShardedDropout& drop) {
   const int64_t B = q.size(0), H = q.size(1), Lq = q.size(2), Dh = q.size(3), N = k.size(2);
   auto s = torch::matmul(q, k.transpose(-2, -1)) / std::sqrt(static_cast<double>(Dh));  // [B, H, Lq, N]
   s = s.masked_fill(key_valid.logical_not().view({B, 1, 1, N}), kNegInf);
@@ -55,7 +55,7 @@ torch::Tensor attend(const torch::Tensor& q, const torch::Tensor& k, const torch
 torch::Tensor attend_with_memory(const torch::Tensor& q, const torch::Tensor& k, const torch::Tensor& v,
                                  const torch::Tensor& key_valid, const torch::Tensor& mk, const torch::Tensor& mv,
                                  const torch::Tensor& mem_valid, const torch::Tensor& bias, bool own_normaliser,
-                                 nn::Dropout& drop) {
+                                 ShardedDropout& drop) {
   const int64_t B = q.size(0), H = q.size(1), Lq = q.size(2), Dh = q.size(3), N = k.size(2), M = mk.size(2);
   const double scale = 1.0 / std::sqrt(static_cast<double>(Dh));
   auto s = (torch::matmul(q, k.transpose(-2, -1)) * scale).masked_fill(key_valid.logical_not().view({B, 1, 1, N}),
@@ -86,7 +86,7 @@ TokenSelfAttentionImpl::TokenSelfAttentionImpl(const TokenTransformerOptions& o)
   proj = register_module("proj", nn::Linear(o.width, o.width));
   q_norm = register_module("q_norm", RMSNorm(head_dim));
   k_norm = register_module("k_norm", RMSNorm(head_dim));
-  attn_drop = register_module("attn_drop", nn::Dropout(o.dropout));
+  attn_drop = register_module("attn_drop", ShardedDropout(o.dropout));
 }
 
 torch::Tensor TokenSelfAttentionImpl::forward(const torch::Tensor& x, const torch::Tensor& key_valid,
@@ -127,7 +127,7 @@ TextCrossAttentionImpl::TextCrossAttentionImpl(const TokenTransformerOptions& o)
   proj = register_module("proj", nn::Linear(o.width, o.width));
   q_norm = register_module("q_norm", RMSNorm(head_dim));
   k_norm = register_module("k_norm", RMSNorm(head_dim));
-  attn_drop = register_module("attn_drop", nn::Dropout(o.dropout));
+  attn_drop = register_module("attn_drop", ShardedDropout(o.dropout));
 }
 
 torch::Tensor TextCrossAttentionImpl::forward(const torch::Tensor& x, const torch::Tensor& memory,

@@ -85,7 +85,7 @@ struct TokenSelfAttentionImpl : torch::nn::Module {
                         const LayerKV* extra = nullptr);
   torch::nn::Linear qkv{nullptr}, proj{nullptr};
   RMSNorm q_norm{nullptr}, k_norm{nullptr};
-  torch::nn::Dropout attn_drop{nullptr};
+  ShardedDropout attn_drop{nullptr};
   int64_t heads, head_dim;
   double rope_base;
 };
@@ -98,7 +98,7 @@ struct TextCrossAttentionImpl : torch::nn::Module {
   torch::Tensor forward(const torch::Tensor& x, const torch::Tensor& memory, const torch::Tensor& memory_valid);
   torch::nn::Linear q{nullptr}, kv{nullptr}, proj{nullptr};
   RMSNorm q_norm{nullptr}, k_norm{nullptr};
-  torch::nn::Dropout attn_drop{nullptr};
+  ShardedDropout attn_drop{nullptr};
   int64_t heads, head_dim;
 };
 TORCH_MODULE(TextCrossAttention);

@@ -12,8 +12,9 @@
 #include "core/atomic_file.h"
 #include "core/error.h"
 #include "data/normalizer.h"
-#include "eval/metrics.h"
-#include "train/trainer.h"
+#include "data/joints_view.h"
+#include "models/trainable.h"
+#include "models/trained_run.h"
 
 namespace mc {
 namespace F = torch::nn::functional;
@@ -75,7 +76,44 @@ torch::Tensor EmaQuantizerImpl::ema_update(const torch::Tensor& z, const torch::
   return dead.sum();
 }
 
-QuantizerOutput EmaQuantizerImpl::forward(const torch::Tensor& z, const torch::Tensor& valid) {
+torch::Tensor EmaQuantizerImpl::ema_update_shard(const torch::Tensor& z, const torch::Tensor& counts,
+                                                const torch::Tensor& sums, int64_t total, int64_t offset,
+                                                const QuantizerSync& sync) {
+  torch::NoGradGuard ng;
+  const int64_t K = opt.codebook_size, D = opt.code_dim, N = z.size(0);
+  if (total == 0) return torch::zeros({}, torch::kLong);
+  const double d = opt.decay;
+  auto zf = z.to(codebook.dtype());
+  cluster_size.mul_(d).add_(counts, 1.0 - d);
+  embed_sum.mul_(d).add_(sums, 1.0 - d);
+  auto n = cluster_size.sum();
+  auto smoothed = (cluster_size + opt.epsilon) / (n + K * opt.epsilon) * n;
+  auto updated = embed_sum / smoothed.unsqueeze(1);
+  if (opt.reset_threshold <= 0) {
+    codebook.copy_(updated);
+    return torch::zeros({}, torch::kLong);
+  }
+  // The picks one process makes over the whole batch (the same draws on every rank);
+  // each rank supplies the picked vectors it holds, the sum assembles them all.
+  auto pick = torch::randint(0, total, {K}, torch::TensorOptions().dtype(torch::kLong));
+  auto fresh = torch::zeros({K, D}, zf.options());
+  if (N > 0) {
+    auto here = pick - offset;
+    auto mine = (here >= 0).logical_and(here < N).to(zf.device());
+    auto rows = zf.index_select(0, here.clamp(0, N - 1).to(zf.device()));
+    fresh = torch::where(mine.unsqueeze(1), rows, fresh);
+  }
+  sync.sum(fresh);
+  auto dead = cluster_size < opt.reset_threshold;
+  auto dead_col = dead.unsqueeze(1);
+  codebook.copy_(torch::where(dead_col, fresh, updated));
+  cluster_size.copy_(torch::where(dead, torch::full_like(cluster_size, opt.reset_threshold), cluster_size));
+  embed_sum.copy_(torch::where(dead_col, fresh * opt.reset_threshold, embed_sum));
+  return dead.sum();
+}
+
+QuantizerOutput EmaQuantizerImpl::forward(const torch::Tensor& z, const torch::Tensor& valid,
+                                          const QuantizerSync& sync) {
   const int64_t K = opt.codebook_size;
   auto ids = assign(z.detach());
   auto e = lookup(ids).to(z.dtype());
@@ -91,6 +129,36 @@ QuantizerOutput EmaQuantizerImpl::forward(const torch::Tensor& z, const torch::T
     sel_z = flat_z.index({v});
     sel_e = flat_e.index({v});
     sel_ids = flat_ids.index({v});
+  }
+  if (sync.active()) {
+    // A shard: the whole batch's vector count (and this rank's offset in it), code
+    // counts and vector sums, then the commitment mean, histogram and EMA step over
+    // the whole batch (QuantizerSync).
+    torch::Tensor counts, sums;
+    int64_t total = 0, offset = 0;
+    {
+      torch::NoGradGuard ng;
+      auto ns = torch::zeros({sync.world}, torch::kFloat64);
+      ns[sync.rank] = static_cast<double>(sel_z.size(0));
+      sync.sum(ns);
+      total = static_cast<int64_t>(ns.sum().item<double>());
+      offset = static_cast<int64_t>(ns.narrow(0, 0, sync.rank).sum().item<double>());
+      auto zf = sel_z.detach().to(codebook.dtype());
+      auto onehot = F::one_hot(sel_ids, K).to(zf.dtype());
+      auto stats = torch::cat({onehot.sum(0), torch::matmul(onehot.t(), zf).reshape({-1})});
+      sync.sum(stats);
+      counts = stats.narrow(0, 0, K);
+      sums = stats.narrow(0, K, K * opt.code_dim).view({K, opt.code_dim});
+      auto p = counts.to(torch::kFloat64) / counts.sum().to(torch::kFloat64).clamp_min(1.0);
+      out.perplexity = torch::exp(-(p * torch::log(p + 1e-10)).sum()).to(torch::kFloat32);
+    }
+    if (total > 0)
+      out.commit_loss = opt.commitment * (sel_z - sel_e.detach()).pow(2).sum() / static_cast<double>(total * opt.code_dim);
+    else
+      out.commit_loss = (z * 0).sum();
+    out.resets = is_training() ? ema_update_shard(sel_z.detach(), counts, sums, total, offset, sync)
+                               : torch::zeros({}, torch::kLong);
+    return out;
   }
   if (sel_z.size(0) > 0)
     out.commit_loss = opt.commitment * (sel_z - sel_e.detach()).pow(2).mean();
@@ -202,13 +270,13 @@ torch::Tensor VqTokenizerImpl::model_output_to_joints(const torch::Tensor& y) co
   return normalize(world).flatten(-2);
 }
 
-VqOutput VqTokenizerImpl::forward(const torch::Tensor& x, const torch::Tensor& mask) {
+VqOutput VqTokenizerImpl::forward(const torch::Tensor& x, const torch::Tensor& mask, const QuantizerSync& sync) {
   const int64_t s = stride();
   auto z = encoder(masked_input(x, mask, s));  // [B, L, D]
   // A token is valid when its first frame is: clips are padded at the end only.
   torch::Tensor token_valid;
   if (mask.defined()) token_valid = mask.slice(1, 0, mask.size(1), s);
-  auto q = quantizer(z, token_valid);
+  auto q = quantizer->forward(z, token_valid, sync);
   VqOutput out;
   out.recon = decoder(q.quantized);
   out.ids = q.ids;
@@ -311,40 +379,54 @@ class VqTokenizerTrainer : public Trainable {
       fail("data.window = {} must be a multiple of {} (2^model.down_stages)", ctx.window, stride_);
     // The codebook is a buffer tracking the live encoder; the trainer's weight EMA
     // would swap in averaged encoder weights at the end that the codebook never saw.
-    if (auto* job = dynamic_cast<const TrainJobConfig*>(ctx.job); job && job->optim.ema_decay > 0)
+    if (ctx.ema_decay > 0)
       fail("model vq_tokenizer needs optim.ema_decay = 0 (got {}): its EMA codebook follows the live encoder, "
            "so averaged final weights would not match it",
-           job->optim.ema_decay);
+           ctx.ema_decay);
   }
   torch::nn::Module& module() override { return *model_; }
 
-  LossOutput loss(const std::vector<int64_t>& idx) override {
-    torch::Tensor x, mask;
+  // A data-parallel shard (train/batch_shard.h) computes its rows: crops drawn for
+  // the whole batch, means over the whole batch's valid frames, and the quantiser's
+  // statistics summed over the ranks (QuantizerSync). Perplexity and resets are the
+  // whole batch's on every rank: their shares are value / ranks.
+  LossOutput loss(const std::vector<int64_t>& idx, const BatchShard& shard) override {
+    torch::Tensor x, mask, whole_mask;
     if (model_->invariant()) {
-      std::tie(x, mask) = feature_batch(idx);
+      std::tie(x, mask, whole_mask) = feature_batch(idx, shard);
     } else {
-      MotionBatch b = ctx_.data->batch(idx, ctx_.window, stride_, ctx_.device);
+      MotionBatch b = ctx_.data->batch(idx, ctx_.window, stride_, ctx_.device, false, shard);
       x = b.joints.flatten(2);  // [B, T, J*3]
       mask = b.mask;
+      whole_mask = b.whole_mask;
     }
-    auto out = model_->forward(x, mask);
+    QuantizerSync sync;
+    if (!shard.whole()) {
+      sync.rank = shard.rank();
+      sync.world = shard.world();
+      sync.sum = [&shard](torch::Tensor& t) { shard.sum_(t); };
+    }
+    auto out = model_->forward(x, mask, sync);
     auto m = mask.unsqueeze(-1).to(x.dtype());
+    auto wm = whole_mask.unsqueeze(-1).to(x.dtype());
     if (model_->invariant() && cfg_.representation.root_weight != 1.0) {
       // Per-channel weights (root channels root_weight, the rest 1), normalised to mean 1.
       auto w = torch::ones({x.size(2)}, x.options());
       w.narrow(0, 0, 4).fill_(cfg_.representation.root_weight);
       m = m * (w / w.mean());
+      wm = wm * (w / w.mean());
     }
-    auto rec = masked_mean(elementwise(out.recon, x), m, x.size(2));
+    auto rec = masked_mean(elementwise(out.recon, x), m, wm, x.size(2));
     auto mv = m.slice(1, 1) * mask.slice(1, 0, -1).unsqueeze(-1).to(x.dtype());
-    auto vel = masked_mean(elementwise(out.recon.diff(1, 1), x.diff(1, 1)), mv, x.size(2));
+    auto wmv = wm.slice(1, 1) * whole_mask.slice(1, 0, -1).unsqueeze(-1).to(x.dtype());
+    auto vel = masked_mean(elementwise(out.recon.diff(1, 1), x.diff(1, 1)), mv, wmv, x.size(2));
     LossOutput lo;
     lo.loss = rec + cfg_.velocity_weight * vel + out.commit_loss;
     lo.parts = {{"rec", rec.detach()},
                 {"vel", vel.detach()},
                 {"commit", out.commit_loss.detach()},
-                {"perplexity", out.perplexity},
-                {"resets", out.resets.to(torch::kFloat32)}};
+                {"perplexity", shard.replicated(out.perplexity)},
+                {"resets", shard.replicated(out.resets.to(torch::kFloat32))}};
     if (model_->invariant() && cfg_.representation.world_weight > 0) {
       // Joints recovered by integration over the window (from the frame before it),
       // prediction against target: the mean per-joint Euclidean error in metres
@@ -355,12 +437,13 @@ class VqTokenizerTrainer : public Trainable {
       auto wx = recover_world_from_invariant(x * fs + fm, J);
       auto mw = mask.unsqueeze(-1).to(x.dtype());  // [B, T, 1]
       auto err = ((wy - wx).pow(2).sum(-1) + 1e-12).sqrt();  // [B, T, J]
-      auto world = (err * mw).sum() / (mw.sum() * J + 1e-8);
+      auto world = (err * mw).sum() / (whole_mask.unsqueeze(-1).to(x.dtype()).sum() * J + 1e-8);
       lo.loss = lo.loss + cfg_.representation.world_weight * world;
       lo.parts.emplace_back("world", world.detach());
     }
     return lo;
   }
+  bool shards_batches() const override { return true; }
 
   // The final evaluation needs the test split (reconstructions); the oracle on val is
   // skipped when val is empty.
@@ -487,26 +570,34 @@ class VqTokenizerTrainer : public Trainable {
 
   // Invariant training batch: each clip's features over the whole clip (so a window's
   // first row holds the real step from the frame before it), normalised, cropped like
-  // MotionDataset::batch (same random draws), padded to a multiple of the stride.
-  std::pair<torch::Tensor, torch::Tensor> feature_batch(const std::vector<int64_t>& idx) {
+  // MotionDataset::batch (same random draws, every clip's), padded to a multiple of
+  // the stride: the shard's rows, their mask and the whole batch's mask.
+  std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> feature_batch(const std::vector<int64_t>& idx,
+                                                                        const BatchShard& shard) {
     const MotionSet& set = ctx_.data->set();
-    const int64_t B = idx.size(), F = model_->input_dim();
+    const int64_t Bw = idx.size(), F = model_->input_dim();
     int64_t T = ctx_.window > 0 ? ctx_.window : set.t_max;
     if (stride_ > 1) T = (T + stride_ - 1) / stride_ * stride_;
-    auto x = torch::zeros({B, T, F});
-    auto mask = torch::zeros({B, T}, torch::kBool);
-    auto mean = model_->feature_mean.to(torch::kCPU), sd = model_->feature_std.to(torch::kCPU);
-    for (int64_t b = 0; b < B; ++b) {
+    std::vector<int64_t> starts(Bw, 0), takes(Bw);
+    auto whole_mask = torch::zeros({Bw, T}, torch::kBool);
+    for (int64_t b = 0; b < Bw; ++b) {
       const int64_t len = set.lengths[idx[b]];
-      int64_t start = 0, take = std::min(len, T);
-      if (ctx_.window > 0 && len > T) start = torch::randint(0, len - T + 1, {1}).item<int64_t>();
-      auto f = compute_features(cfg_.representation.layout, set.clip(idx[b]), static_cast<int>(len), set.skeleton,
-                                model_->options.representation.features);
-      auto ft = torch::from_blob(f.data(), {len, F}, torch::kFloat32).narrow(0, start, take);
-      x[b].narrow(0, 0, take).copy_((ft - mean) / sd);
-      mask[b].narrow(0, 0, take).fill_(true);
+      takes[b] = std::min(len, T);
+      if (ctx_.window > 0 && len > T) starts[b] = torch::randint(0, len - T + 1, {1}).item<int64_t>();
+      whole_mask[b].narrow(0, 0, takes[b]).fill_(true);
     }
-    return {x.to(ctx_.device), mask.to(ctx_.device)};
+    const BatchRows rows = shard.rows(Bw);
+    auto x = torch::zeros({rows.size(), T, F});
+    auto mean = model_->feature_mean.to(torch::kCPU), sd = model_->feature_std.to(torch::kCPU);
+    for (int64_t b = 0; b < rows.size(); ++b) {
+      const int64_t w = rows.begin + b, len = set.lengths[idx[w]];
+      auto f = compute_features(cfg_.representation.layout, set.clip(idx[w]), static_cast<int>(len), set.skeleton,
+                                model_->options.representation.features);
+      auto ft = torch::from_blob(f.data(), {len, F}, torch::kFloat32).narrow(0, starts[w], takes[w]);
+      x[b].narrow(0, 0, takes[w]).copy_((ft - mean) / sd);
+    }
+    auto mask = shard.local(whole_mask).clone();
+    return {x.to(ctx_.device), mask.to(ctx_.device), whole_mask.to(ctx_.device)};
   }
 
   torch::Tensor elementwise(const torch::Tensor& y, const torch::Tensor& x) const {
@@ -514,10 +605,12 @@ class VqTokenizerTrainer : public Trainable {
     return F::smooth_l1_loss(y, x, F::SmoothL1LossFuncOptions().reduction(torch::kNone));
   }
   // m [B, T, 1] (a frame mask: the mean over frames and `dim` channels) or [B, T, C]
-  // (per-channel weights times the mask: the weighted mean).
-  static torch::Tensor masked_mean(const torch::Tensor& v, const torch::Tensor& m, int64_t dim) {
-    if (m.size(-1) > 1) return (v * m).sum() / (m.sum() + 1e-8);
-    return (v * m).sum() / (m.sum() * dim + 1e-8);
+  // (per-channel weights times the mask: the weighted mean); the denominator from
+  // the whole batch's `whole` (m itself in one process).
+  static torch::Tensor masked_mean(const torch::Tensor& v, const torch::Tensor& m, const torch::Tensor& whole,
+                                   int64_t dim) {
+    if (m.size(-1) > 1) return (v * m).sum() / (whole.sum() + 1e-8);
+    return (v * m).sum() / (whole.sum() * dim + 1e-8);
   }
   // Per-joint mean world position over the valid training frames, repeated over T.
   std::vector<float> mean_training_pose(int T) const {
@@ -565,46 +658,22 @@ void LoadedVqTokenizer::check_compatible(const MotionSet& m, const std::string& 
 }
 
 LoadedVqTokenizer load_vq_tokenizer(const std::string& run_dir, torch::Device device) {
-  fs::path dir(run_dir);
-  fs::path final_pt = dir / "checkpoints" / "final.pt";
-  fs::path meta_file = dir / "outputs" / kMetaFile;
-  if (!fs::is_directory(dir)) fail("tokenizer run '{}' does not exist", run_dir);
-  for (const fs::path& p : {dir / "config.yaml", final_pt, meta_file})
-    if (!fs::exists(p))
-      fail("tokenizer run '{}' is incomplete: '{}' is missing; finish it with `motionctl train "
-           "configs/tokenizer/vq_tiny.yaml` (or point at a finished vq_tokenizer run)",
-           run_dir, p.string());
-  TrainJobConfig job;
-  parse_config(compose_config((dir / "config.yaml").string()), job);
-  if (job.model.type != "vq_tokenizer")
-    fail("'{}' is a run of model type '{}', not a tokenizer (vq_tokenizer)", run_dir, job.model.type);
+  TrainedRun run = open_trained_run(run_dir, {"tokenizer", {"vq_tokenizer"}, {kMetaFile},
+                                              "train one with `motionctl train configs/tokenizer/vq_tiny.yaml`"});
   LoadedVqTokenizer out;
   out.run_dir = run_dir;
-  out.cfg = job.model.as<VqTokenizerConfig>();
+  out.cfg = run.model.as<VqTokenizerConfig>();
   int num_joints = 0;
-  try {
-    YAML::Node meta = YAML::LoadFile(meta_file.string());
+  const std::string meta_file = run.output(kMetaFile).string();
+  run.read_meta(kMetaFile, [&](const YAML::Node& meta) {
     num_joints = meta["num_joints"].as<int>();
     out.fps = meta["fps"].as<double>();
-    out.skeleton = skeleton_from_yaml_text(meta["skeleton"].as<std::string>(), meta_file.string());
-  } catch (const YAML::Exception& e) {
-    fail("'{}' is corrupt: {}", meta_file.string(), e.what());
-  }
+    out.skeleton = skeleton_from_yaml_text(meta["skeleton"].as<std::string>(), meta_file);
+  });
   if (num_joints != out.skeleton.num_joints())
-    fail("'{}' is corrupt: num_joints {} but its skeleton has {}", meta_file.string(), num_joints,
-         out.skeleton.num_joints());
+    fail("'{}' is corrupt: num_joints {} but its skeleton has {}", meta_file, num_joints, out.skeleton.num_joints());
   out.model = VqTokenizer(vq_tokenizer_options(out.cfg, out.skeleton));
-  try {
-    torch::serialize::InputArchive ar;
-    ar.load_from(final_pt.string());
-    out.model->load(ar);
-  } catch (const c10::Error& e) {
-    fail("tokenizer checkpoint '{}' is unreadable or does not match its config.yaml ({})", final_pt.string(),
-         std::string(e.what_without_backtrace()).substr(0, 200));
-  } catch (const std::exception& e) {  // torch::jit::ErrorReport on a damaged file
-    fail("tokenizer checkpoint '{}' is unreadable or does not match its config.yaml ({})", final_pt.string(),
-         std::string(e.what()).substr(0, 200));
-  }
+  run.load_weights(*out.model);
   out.model->to(device);
   out.model->eval();
   return out;

@@ -7,6 +7,7 @@
 // decode()/soft_decode()/decode_embeddings() return normalised absolute joints, so
 // the anchor losses and RouteSolver's residuals stay in world metres.
 #pragma once
+#include <functional>
 #include <string>
 
 #include <torch/torch.h>
@@ -38,18 +39,34 @@ struct QuantizerOutput {
   torch::Tensor resets;       // scalar, codes re-drawn by this call's EMA update (0 in eval)
 };
 
+// A data-parallel shard's view of the whole batch for the quantiser (issue 19;
+// train/batch_shard.h builds it): this rank, the rank count and the in-place sum of
+// a tensor over the ranks. The commitment mean, the code histogram and the EMA step
+// then use the whole batch's vectors, and dead codes restart from the whole batch's
+// vectors, so every rank keeps the codebook one process would. Default: one process.
+struct QuantizerSync {
+  int rank = 0, world = 1;
+  std::function<void(torch::Tensor&)> sum;
+  bool active() const { return world > 1 && static_cast<bool>(sum); }
+};
+
 // Nearest-code quantiser whose codebook is not a parameter: it follows the EMA of
 // the encoder outputs assigned to each code, so the optimiser never touches it.
 struct EmaQuantizerImpl : torch::nn::Module {
   explicit EmaQuantizerImpl(const EmaQuantizerOptions& o);
   // z [..., D]; valid [...] bool (undefined = all valid) marks the vectors that
   // count for the loss, the statistics and (in training mode) the EMA update.
-  QuantizerOutput forward(const torch::Tensor& z, const torch::Tensor& valid = {});
+  QuantizerOutput forward(const torch::Tensor& z, const torch::Tensor& valid = {}, const QuantizerSync& sync = {});
   torch::Tensor assign(const torch::Tensor& z) const;    // [..., D] -> nearest ids [...] (no update)
   torch::Tensor lookup(const torch::Tensor& ids) const;  // [...] -> [..., D]
   // One EMA step from flat vectors z [N, D] and their ids [N]; returns the number
   // of codes re-drawn. Random replacements come from torch's CPU generator.
   torch::Tensor ema_update(const torch::Tensor& z, const torch::Tensor& ids);
+  // The same step for a shard: z [n, D] are rows [offset, offset + n) of the whole
+  // batch's `total` vectors, whose summed one-hot counts [K] and vector sums [K, D]
+  // are given.
+  torch::Tensor ema_update_shard(const torch::Tensor& z, const torch::Tensor& counts, const torch::Tensor& sums,
+                                 int64_t total, int64_t offset, const QuantizerSync& sync);
 
   EmaQuantizerOptions opt;
   torch::Tensor codebook;      // [K, D] buffer
@@ -93,7 +110,7 @@ struct VqTokenizerImpl : torch::nn::Module {
   // x [B, T, C] in the model representation (model_input), T a multiple of stride();
   // mask [B, T] bool (undefined = all valid). Padded frames are zeroed (the dataset's
   // padding value) so the tokens of a clip do not depend on what its padding held.
-  VqOutput forward(const torch::Tensor& x, const torch::Tensor& mask = {});
+  VqOutput forward(const torch::Tensor& x, const torch::Tensor& mask = {}, const QuantizerSync& sync = {});
   // x [B, T, J*3] normalised absolute joints (clips start at frame 0, padded at the
   // end) -> ids [B, T / stride] int64. Invariant: features of each clip's valid frames.
   torch::Tensor encode(const torch::Tensor& x, const torch::Tensor& mask = {});

@@ -8,9 +8,10 @@
 #include "control/projection_solver.h"
 #include "core/error.h"
 #include "data/skeleton.h"
+#include "core/trained_runs.h"
 #include "models/anchor_adapters.h"
 #include "models/token_prior.h"
-#include "samplers/anchor_loss.h"
+#include "control/anchor_loss.h"
 #include "samplers/anchorroute_generator.h"
 #include "samplers/motion_generator.h"
 #include "samplers/route_solver.h"
@@ -75,7 +76,7 @@ class AnchorRouteGenerator : public MotionGenerator {
       // An audit twin trained on zeroed features (model.training.zero_features) sees zeros here too.
       for (int64_t i = 0; i < N && !acfg_.training.zero_features; ++i) {
         try {
-          feats[i].narrow(0, 0, sets[i].frames).copy_(adapter_features(sets[i], acfg_.body_joints));
+          feats[i].narrow(0, 0, sets[i].frames).copy_(adapter_features(sets[i], acfg_.body_joints, acfg_.features.delta_scale));
         } catch (const UserError& e) {
           fail("generator anchorroute: task '{}': the adapter '{}' cannot read its anchors: {}", tasks[i].id,
                adapter_run_, e.what());
@@ -205,9 +206,15 @@ void AnchorRouteGeneratorConfig::visit(FieldVisitor& v) {
   v("exact", exact, "end the decode with ProjFlow's projection onto the task's constraints (issue 20)");
 }
 
+void AnchorRouteGeneratorConfig::dependencies(DependencyVisitor& d) {
+  d("adapter", adapter_run, adapter_config, adapter_overrides);
+  // The TMD prior alone is used (and so trained first) only without an adapter.
+  if (adapter_run.empty() && adapter_config.empty()) d("prior", prior_run, prior_config, prior_overrides);
+}
+
 std::unique_ptr<MotionGenerator> AnchorRouteGeneratorConfig::make(const GeneratorContext& ctx) const {
   std::string run = adapter_run;
-  if (run.empty() && !adapter_config.empty()) run = train_on_demand(adapter_config, adapter_overrides);
+  if (run.empty() && !adapter_config.empty()) run = trained_run("adapter", adapter_run, adapter_config, adapter_overrides);
   if (!run.empty()) {
     auto a = load_anchor_adapter(run, ctx.device);
     return std::make_unique<AnchorRouteGenerator>(a.prior, a.module, a.cfg, run, sampler, route, route_batch,
@@ -216,7 +223,7 @@ std::unique_ptr<MotionGenerator> AnchorRouteGeneratorConfig::make(const Generato
   std::string p = prior_run;
   if (p.empty()) {
     if (prior_config.empty()) fail("generator anchorroute: set adapter_run/adapter_config or prior_run/prior_config");
-    p = train_on_demand(prior_config, prior_overrides);
+    p = trained_run("prior", prior_run, prior_config, prior_overrides);
   }
   auto prior = std::make_shared<TokenPrior>(TokenPrior::load(p, ctx.device));
   if (!prior->is_tmd()) fail("generator anchorroute: '{}' is not a tmd_prior run", p);

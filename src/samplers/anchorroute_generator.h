@@ -8,6 +8,7 @@
 
 #include "control/kinematic_metric.h"
 #include "core/config.h"
+#include "core/trained_runs.h"
 #include "models/token_transformer.h"
 #include "samplers/motion_generator.h"
 #include "samplers/route_solver.h"
@@ -50,7 +51,7 @@ struct ExactProjectionConfig : Config {
   bool omitted_from_dump() const override { return !enabled; }
 };
 
-struct AnchorRouteGeneratorConfig : GeneratorConfig {
+struct AnchorRouteGeneratorConfig : GeneratorConfig, DeclaresDependencies {
   std::string adapter_run;
   std::string adapter_config;
   std::vector<std::string> adapter_overrides;
@@ -63,6 +64,7 @@ struct AnchorRouteGeneratorConfig : GeneratorConfig {
   AnchorGuidanceConfig guidance;
   ExactProjectionConfig exact;
   void visit(FieldVisitor& v) override;
+  void dependencies(DependencyVisitor& d) override;
   std::unique_ptr<MotionGenerator> make(const GeneratorContext& ctx) const override;
 };
 

@@ -10,7 +10,7 @@
 #include "data/skeleton.h"
 #include "samplers/motion_generator.h"
 #include "samplers/task_observation.h"
-#include "train/train_job.h"
+#include "core/trained_runs.h"
 
 namespace mc {
 
@@ -102,7 +102,7 @@ torch::Tensor sample_controlnet(const FlowControlNet& net, const std::vector<Con
 
 namespace {
 
-struct ControlNetRunSource : Config {
+struct ControlNetRunSource : Config, DeclaresDependencies {
   std::string run_dir;
   std::string config;
   std::vector<std::string> overrides;
@@ -111,6 +111,7 @@ struct ControlNetRunSource : Config {
     v("config", config, "its training config (when run_dir is empty), trained on demand like `motionctl train`");
     v("overrides", overrides, "key=value overrides applied to `config`");
   }
+  void dependencies(DependencyVisitor& d) override { d("controlnet", run_dir, config, overrides); }
   std::string validate() const override {
     if (run_dir.empty() && config.empty())
       return "set controlnet.run_dir (a finished flow_controlnet run) or controlnet.config, e.g. "
@@ -152,8 +153,7 @@ struct ControlNetGeneratorConfig : GeneratorConfig {
     sampler.visit(v);  // steps, text_cfg, control_cfg, batch_size next to `controlnet`
   }
   std::unique_ptr<MotionGenerator> make(const GeneratorContext& ctx) const override {
-    std::string dir = controlnet.run_dir;
-    if (dir.empty()) dir = run_train(resolve_data_path(controlnet.config), controlnet.overrides).run_dir.string();
+    const std::string dir = trained_run("controlnet", controlnet.run_dir, controlnet.config, controlnet.overrides);
     return std::make_unique<ControlNetGenerator>(FlowControlNet::load(dir, ctx.device), sampler);
   }
 };

@@ -10,7 +10,7 @@
 
 #include "core/error.h"
 #include "samplers/motion_generator.h"
-#include "samplers/prior_source.h"
+#include "models/prior_source.h"
 #include "samplers/task_observation.h"
 
 namespace mc {
@@ -186,7 +186,7 @@ struct DnoGeneratorConfig : GeneratorConfig {
   }
   std::string validate() const override { return dno.validate(); }
   std::unique_ptr<MotionGenerator> make(const GeneratorContext& ctx) const override {
-    return std::make_unique<DnoGenerator>(load_flow_prior(prior, ctx.device, &std::cerr), dno);
+    return std::make_unique<DnoGenerator>(load_flow_prior(prior, ctx.device), dno);
   }
 };
 

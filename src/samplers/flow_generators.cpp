@@ -6,7 +6,7 @@
 #include "control/control_task.h"
 #include "core/error.h"
 #include "samplers/motion_generator.h"
-#include "samplers/prior_source.h"
+#include "models/prior_source.h"
 #include "samplers/projflow.h"
 #include "samplers/task_observation.h"
 
@@ -68,7 +68,7 @@ struct FlowGeneratorConfig : GeneratorConfig {
     v("sampler", sampler, "ODE sampler settings");
   }
   std::unique_ptr<MotionGenerator> make(const GeneratorContext& ctx) const override {
-    return std::make_unique<FlowGenerator>(load_flow_prior(prior, ctx.device, &std::cerr), sampler);
+    return std::make_unique<FlowGenerator>(load_flow_prior(prior, ctx.device), sampler);
   }
 };
 MC_REGISTER_GENERATOR("flow", FlowGeneratorConfig, "the flow prior's text-to-motion samples (constraints ignored)");
@@ -113,7 +113,7 @@ struct ProjFlowGeneratorConfig : GeneratorConfig {
     v("projflow", projflow, "projection, recombination and pseudo-observation settings");
   }
   std::unique_ptr<MotionGenerator> make(const GeneratorContext& ctx) const override {
-    return std::make_unique<ProjFlowGenerator>(load_flow_prior(prior, ctx.device, &std::cerr), sampler, projflow);
+    return std::make_unique<ProjFlowGenerator>(load_flow_prior(prior, ctx.device), sampler, projflow);
   }
 };
 MC_REGISTER_GENERATOR("projflow", ProjFlowGeneratorConfig,
@@ -157,7 +157,7 @@ struct GuidanceGeneratorConfig : GeneratorConfig {
     v("guidance", guidance, "gradient guidance settings");
   }
   std::unique_ptr<MotionGenerator> make(const GeneratorContext& ctx) const override {
-    return std::make_unique<GuidanceGenerator>(load_flow_prior(prior, ctx.device, &std::cerr), sampler, guidance);
+    return std::make_unique<GuidanceGenerator>(load_flow_prior(prior, ctx.device), sampler, guidance);
   }
 };
 MC_REGISTER_GENERATOR("flow_guidance", GuidanceGeneratorConfig,

@@ -38,8 +38,10 @@ class MotionGenerator {
   virtual std::string describe() const = 0;  // one line for logs: method and key settings
 };
 
-// Base of every `generator:` component type: the config builds the generator,
-// training what it needs on demand (run_train, train/train_job.h).
+// Base of every `generator:` component type: the config builds the generator from
+// finished runs. Trained components it names by training config are declared
+// (DeclaresDependencies, core/trained_runs.h) and trained first by the job that
+// builds it (train/dependencies.h); make() only loads them.
 struct GeneratorConfig : Config {
   virtual std::unique_ptr<MotionGenerator> make(const GeneratorContext& ctx) const = 0;
 };

@@ -8,8 +8,8 @@
 #include <random>
 
 #include "core/error.h"
+#include "control/anchor_loss.h"
 #include "data/skeleton.h"
-#include "samplers/anchor_loss.h"
 #include "samplers/task_observation.h"
 
 namespace mc {

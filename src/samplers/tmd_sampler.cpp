@@ -1,5 +1,5 @@
-// Loading a token prior with its tokenizer, CFG on logits, the TMD transition
-// sampler (eqs. (21)-(23)) and the MoMask re-masking sampler.
+// The TMD transition sampler (eqs. (21)-(23)) and the MoMask re-masking sampler
+// over a loaded token prior.
 #include "samplers/tmd_sampler.h"
 
 #include <ATen/CPUGeneratorImpl.h>
@@ -14,126 +14,8 @@
 
 #include "core/error.h"
 #include "models/flow_prior.h"
-#include "train/trainer.h"
 
 namespace mc {
-
-// ---------------------------------------------------------------- loading
-
-TokenPrior TokenPrior::load(const std::string& run_dir, torch::Device device) {
-  fs::path dir(run_dir);
-  if (!fs::is_directory(dir))
-    fail("token prior run directory '{}' does not exist; train one with `motionctl train configs/tmd/tmd_tiny.yaml` "
-         "(or configs/masked/masked_tiny.yaml), or set prior_config to train it on demand",
-         run_dir);
-  fs::path final_pt = dir / "checkpoints" / "final.pt", meta_path = dir / "outputs" / "prior_meta.yaml";
-  for (const fs::path& p : {dir / "config.yaml", final_pt, dir / "outputs" / "vocab.txt", meta_path})
-    if (!fs::exists(p))
-      fail("token prior run '{}' is incomplete: '{}' is missing; finish it with `motionctl train {}/config.yaml` "
-           "(or point at a finished tmd_prior / masked_prior run)",
-           run_dir, p.string(), run_dir);
-  TrainJobConfig job;
-  parse_config(compose_config((dir / "config.yaml").string()), job);
-  if (job.model.type != "tmd_prior" && job.model.type != "masked_prior")
-    fail("'{}' is a run of model type '{}', not a token prior (tmd_prior or masked_prior)", run_dir, job.model.type);
-  TokenPrior p;
-  p.run_dir_ = run_dir;
-  p.device_ = device;
-  p.cfg_ = std::dynamic_pointer_cast<TokenPriorConfig>(job.model.cfg);
-  std::vector<std::string> words;
-  {
-    std::ifstream f(dir / "outputs" / "vocab.txt");
-    for (std::string w; std::getline(f, w);) words.push_back(w);
-  }
-  p.vocab_ = std::make_shared<TextVocab>(words, (dir / "outputs" / "vocab.txt").string());
-  std::string tokenizer_run;
-  int64_t K = 0;
-  try {
-    YAML::Node meta = YAML::LoadFile(meta_path.string());
-    p.t_max_ = meta["t_max"].as<int>();
-    tokenizer_run = meta["tokenizer_run"].as<std::string>();
-    K = meta["codebook_size"].as<int64_t>();
-  } catch (const YAML::Exception& e) {
-    fail("'{}' is corrupt: {}", meta_path.string(), e.what());
-  }
-  p.tok_ = load_vq_tokenizer(tokenizer_run, device);
-  if (p.tok_.model->codebook_size() != K)
-    fail("token prior '{}' was trained on {} codes but its tokenizer '{}' now has {}; retrain the prior", run_dir, K,
-         tokenizer_run, p.tok_.model->codebook_size());
-  p.net_ = std::make_shared<TokenPriorNet>(p.vocab_->size(), K, *p.cfg_);
-  try {
-    torch::serialize::InputArchive ar;
-    ar.load_from(final_pt.string());
-    (*p.net_)->load(ar);
-  } catch (const std::exception&) {  // c10::Error, or torch::jit::ErrorReport on a damaged file
-    fail("token prior checkpoint '{}' is unreadable or does not match its config.yaml", final_pt.string());
-  }
-  (*p.net_)->to(device);
-  (*p.net_)->eval();
-  // The codes the prior learned are only meaningful with the codebook it was trained on.
-  torch::Tensor d_now;
-  if (auto* t = dynamic_cast<const TmdPriorConfig*>(p.cfg_.get()))
-    d_now = tmd_path_table(p.tok_.model->codebook(), t->path, t->beta_c, t->beta_a).dist.to(device);
-  else
-    d_now = p.tok_.model->token_distance_table().to(device);
-  if (!torch::allclose((*p.net_)->distance, d_now, 1e-4, 1e-4))
-    fail("the tokenizer '{}' no longer has the codebook token prior '{}' was trained with (distance tables differ); "
-         "retrain the prior on this tokenizer",
-         tokenizer_run, run_dir);
-  return p;
-}
-
-const TmdPriorConfig& TokenPrior::tmd_config() const {
-  auto* t = dynamic_cast<const TmdPriorConfig*>(cfg_.get());
-  if (!t) throw std::logic_error("token prior '" + run_dir_ + "' is a masked prior, not TMD");
-  return *t;
-}
-
-// ---------------------------------------------------------------- logits
-
-TextContext TokenPrior::encode_texts(const std::vector<std::string>& captions) const {
-  torch::NoGradGuard ng;
-  auto enc = encode_captions(*vocab_, captions, cfg_->max_words);
-  return (*net_)->encode_text(enc.ids.to(device_), enc.lengths.to(device_));
-}
-
-TextContext TokenPrior::null_texts(int64_t B, int64_t W) const {
-  torch::NoGradGuard ng;
-  return (*net_)->null_context(B, W);
-}
-
-torch::Tensor TokenPrior::raw_logits(const torch::Tensor& ids, const torch::Tensor& t, const TextContext& text,
-                                     const torch::Tensor& valid, const TokenTransformerHooks* hooks) const {
-  torch::Tensor tt;
-  if (is_tmd()) tt = t.to(device_, torch::kFloat32).reshape({-1}).expand({ids.size(0)});
-  return (*net_)->transformer->forward(ids.to(device_), tt, text, valid.to(device_), hooks).logits;
-}
-
-torch::Tensor TokenPrior::guided_logits(const torch::Tensor& ids, const torch::Tensor& t, const TextContext& text,
-                                        const torch::Tensor& valid, double cfg_scale,
-                                        const TokenTransformerHooks* hooks) const {
-  torch::NoGradGuard ng;
-  const int64_t B = ids.size(0), W = text.memory.size(1);
-  torch::Tensor tt;
-  if (is_tmd()) tt = t.to(device_, torch::kFloat32).reshape({-1}).expand({B});
-  // Hooks in both halves unless hooks->guidance says otherwise (AnchorRoute's anchor guidance).
-  auto l = guided_token_logits(*(*net_)->transformer, ids.to(device_), tt, text, null_texts(B, W), valid.to(device_),
-                               cfg_scale, hooks);
-  auto v = valid.to(device_, torch::kBool).unsqueeze(-1).expand_as(l);
-  if (!torch::isfinite(l.masked_select(v)).all().item<bool>())
-    fail("the token prior '{}' produced non-finite logits; the checkpoint is broken or diverged — retrain it "
-         "(lower optim.lr) before sampling",
-         run_dir_);
-  return l;
-}
-
-torch::Tensor TokenPrior::decode_world(const torch::Tensor& ids) const {
-  torch::NoGradGuard ng;
-  const int64_t L = ids.size(0);
-  VqTokenizer model = tok_.model;  // a handle: decode() is not const
-  auto x = model->decode(ids.to(device_).view({1, L}));  // [1, L*s, J*3] normalised
-  return tok_.model->denormalize(x.view({L * stride(), num_joints(), 3})).to(torch::kCPU);
-}
 
 // ---------------------------------------------------------------- TMD transitions
 

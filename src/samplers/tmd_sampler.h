@@ -1,6 +1,6 @@
-// A trained token prior (TMD or masked) loaded from its run directory with its
-// tokenizer, CFG on logits, the TMD transition sampler (eqs. (21)-(23)) and the
-// MoMask-style confidence re-masking sampler; both decode to world joints.
+// Sampling a trained token prior (TMD or masked, models/token_prior.h): the TMD
+// transition sampler (eqs. (21)-(23)) and the MoMask-style confidence re-masking
+// sampler; both decode to world joints.
 #pragma once
 #include <functional>
 #include <memory>
@@ -50,56 +50,6 @@ struct MaskedSamplerConfig : Config {
       in_range(1e-6, 1.0));
     v("batch_size", batch_size, "motions per network call (the CFG forward doubles it)", at_least(1));
   }
-};
-
-// A finished `tmd_prior` or `masked_prior` run (config.yaml, checkpoints/final.pt,
-// outputs/vocab.txt, outputs/prior_meta.yaml) and the tokenizer run it names.
-class TokenPrior {
- public:
-  // UserError naming a missing file, a wrong model type, an unreadable checkpoint or a
-  // tokenizer whose codebook no longer matches the one the prior was trained with.
-  static TokenPrior load(const std::string& run_dir, torch::Device device = torch::kCPU);
-
-  TextContext encode_texts(const std::vector<std::string>& captions) const;
-  TextContext null_texts(int64_t B, int64_t W) const;
-
-  // One network call: ids [B, L], t [B] or scalar (ignored by the masked prior), valid [B, L].
-  torch::Tensor raw_logits(const torch::Tensor& ids, const torch::Tensor& t, const TextContext& text,
-                           const torch::Tensor& valid, const TokenTransformerHooks* hooks = nullptr) const;
-  // l_u + s (l_c - l_u), both halves in one doubled forward (hooks, if any, are given
-  // for B rows; hooks->guidance says which passes get them: guided_token_logits).
-  // UserError when a valid position's logits are not finite.
-  torch::Tensor guided_logits(const torch::Tensor& ids, const torch::Tensor& t, const TextContext& text,
-                              const torch::Tensor& valid, double cfg_scale,
-                              const TokenTransformerHooks* hooks = nullptr) const;
-  // Tokens [L] of one motion -> world joints [L * stride, J, 3] (CPU).
-  torch::Tensor decode_world(const torch::Tensor& ids) const;
-
-  bool is_tmd() const { return cfg_->is_tmd(); }
-  const TokenPriorConfig& config() const { return *cfg_; }
-  const TmdPriorConfig& tmd_config() const;  // logic_error for a masked prior
-  const LoadedVqTokenizer& tokenizer() const { return tok_; }
-  torch::Tensor distance() const { return (*net_)->distance; }  // [K, K]
-  int64_t codebook_size() const { return tok_.model->codebook_size(); }
-  int64_t stride() const { return tok_.model->stride(); }
-  int64_t max_tokens() const { return (t_max_ + stride() - 1) / stride(); }
-  const Skeleton& skeleton() const { return tok_.skeleton; }
-  const TextVocab& vocab() const { return *vocab_; }
-  double fps() const { return tok_.fps; }
-  int t_max() const { return t_max_; }
-  int num_joints() const { return skeleton().num_joints(); }
-  const std::string& run_dir() const { return run_dir_; }
-  torch::Device device() const { return device_; }
-  TokenPriorNet& net() const { return *net_; }
-
- private:
-  std::shared_ptr<TokenPriorNet> net_;
-  std::shared_ptr<TextVocab> vocab_;
-  std::shared_ptr<TokenPriorConfig> cfg_;
-  LoadedVqTokenizer tok_;
-  int t_max_ = 196;
-  std::string run_dir_;
-  torch::Device device_ = torch::kCPU;
 };
 
 // ---------------------------------------------------------------- TMD transitions

@@ -1,9 +1,11 @@
 // Generators `tmd` and `masked`: unconstrained text-to-motion from a token prior
-// (Table I rows). Constraint specs are ignored; the prior is trained on demand.
+// (Table I rows). Constraint specs are ignored; a prior named by its training config
+// is trained first by the job (train/dependencies.h).
 #include <chrono>
 #include <type_traits>
 
 #include "core/error.h"
+#include "core/trained_runs.h"
 #include "samplers/motion_generator.h"
 #include "samplers/tmd_sampler.h"
 #include "models/token_prior.h"
@@ -13,7 +15,7 @@ namespace mc {
 namespace {
 
 // The prior run: given, or its training config run on demand.
-struct TokenPriorSource : Config {
+struct TokenPriorSource : Config, DeclaresDependencies {
   std::string prior_run;
   std::string prior_config;
   std::vector<std::string> prior_overrides;
@@ -23,10 +25,11 @@ struct TokenPriorSource : Config {
     v("prior_config", prior_config, "prior training config run on demand when prior_run is ''");
     v("prior_overrides", prior_overrides, "key=value overrides for prior_config");
   }
+  void dependencies(DependencyVisitor& d) override { d("prior", prior_run, prior_config, prior_overrides); }
   std::string resolve() const {
     if (!prior_run.empty()) return prior_run;
     if (prior_config.empty()) fail("generator: set prior_run (a finished token prior run) or prior_config");
-    return train_on_demand(prior_config, prior_overrides);
+    return trained_run("prior", prior_run, prior_config, prior_overrides);
   }
 };
 
@@ -72,13 +75,14 @@ class TokenPriorGenerator : public MotionGenerator {
 
 }  // namespace
 
-struct TmdGeneratorConfig : GeneratorConfig {
+struct TmdGeneratorConfig : GeneratorConfig, DeclaresDependencies {
   TokenPriorSource source{"configs/tmd/tmd_tiny.yaml"};
   TmdSamplerConfig sampler;
   void visit(FieldVisitor& v) override {
     source.visit(v);
     v("sampler", sampler, "TMD transition sampler (eqs. (21)-(23))");
   }
+  void dependencies(DependencyVisitor& d) override { source.dependencies(d); }
   std::unique_ptr<MotionGenerator> make(const GeneratorContext& ctx) const override {
     auto prior = TokenPrior::load(source.resolve(), ctx.device);
     if (!prior.is_tmd()) fail("generator tmd: '{}' is not a tmd_prior run (use generator type masked)", prior.run_dir());
@@ -86,13 +90,14 @@ struct TmdGeneratorConfig : GeneratorConfig {
   }
 };
 
-struct MaskedGeneratorConfig : GeneratorConfig {
+struct MaskedGeneratorConfig : GeneratorConfig, DeclaresDependencies {
   TokenPriorSource source{"configs/masked/masked_tiny.yaml"};
   MaskedSamplerConfig sampler;
   void visit(FieldVisitor& v) override {
     source.visit(v);
     v("sampler", sampler, "MoMask-style confidence re-masking sampler");
   }
+  void dependencies(DependencyVisitor& d) override { source.dependencies(d); }
   std::unique_ptr<MotionGenerator> make(const GeneratorContext& ctx) const override {
     auto prior = TokenPrior::load(source.resolve(), ctx.device);
     if (prior.is_tmd()) fail("generator masked: '{}' is a tmd_prior run (use generator type tmd)", prior.run_dir());

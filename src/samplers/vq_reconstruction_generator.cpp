@@ -4,6 +4,7 @@
 #include <chrono>
 
 #include "core/error.h"
+#include "core/trained_runs.h"
 #include "models/token_prior.h"
 #include "models/vq_tokenizer.h"
 #include "samplers/motion_generator.h"
@@ -55,7 +56,7 @@ class VqReconstructionGenerator : public MotionGenerator {
   LoadedVqTokenizer tok_;
 };
 
-struct VqReconstructionConfig : GeneratorConfig {
+struct VqReconstructionConfig : GeneratorConfig, DeclaresDependencies {
   std::string tokenizer_run;
   std::string tokenizer_config = "configs/tokenizer/vq_tiny.yaml";
   std::vector<std::string> tokenizer_overrides;
@@ -64,11 +65,14 @@ struct VqReconstructionConfig : GeneratorConfig {
     v("tokenizer_config", tokenizer_config, "tokenizer training config run on demand when tokenizer_run is ''");
     v("tokenizer_overrides", tokenizer_overrides, "key=value overrides for tokenizer_config");
   }
+  void dependencies(DependencyVisitor& d) override {
+    d("tokenizer", tokenizer_run, tokenizer_config, tokenizer_overrides);
+  }
   std::unique_ptr<MotionGenerator> make(const GeneratorContext& ctx) const override {
     std::string dir = tokenizer_run;
     if (dir.empty()) {
       if (tokenizer_config.empty()) fail("generator vq_reconstruction: set tokenizer_run or tokenizer_config");
-      dir = train_on_demand(tokenizer_config, tokenizer_overrides);
+      dir = trained_run("tokenizer", tokenizer_run, tokenizer_config, tokenizer_overrides);
     }
     return std::make_unique<VqReconstructionGenerator>(load_vq_tokenizer(dir, ctx.device));
   }

@@ -187,10 +187,17 @@ PretrainedEntry ship_run(const fs::path& run_dir, const fs::path& root, const st
   fs::rename(staging, e.dir);
   fs::remove_all(root / ".staging", ec);
 
+  // An entry of the same config and overrides under another name is an older training of
+  // this component (its config changed since): it is superseded, so its files go too, and
+  // the manifest never ships two versions of one component.
   auto entries = read_pretrained_manifest(root);
-  entries.erase(std::remove_if(entries.begin(), entries.end(),
-                               [&](const PretrainedEntry& x) { return x.experiment == e.experiment && x.name == e.name; }),
-                entries.end());
+  const auto superseded = [&](const PretrainedEntry& x) {
+    return x.experiment == e.experiment &&
+           (x.name == e.name || (x.config == e.config && x.overrides == e.overrides));
+  };
+  for (const auto& x : entries)
+    if (superseded(x) && x.name != e.name) fs::remove_all(root / x.experiment / x.name, ec);
+  entries.erase(std::remove_if(entries.begin(), entries.end(), superseded), entries.end());
   entries.push_back(e);
   YAML::Emitter y;
   y << YAML::Comment("Trained components shipped with motionctl (written by `motionctl ship`). run_train installs "

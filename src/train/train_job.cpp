@@ -8,6 +8,7 @@
 
 #include "core/error.h"
 #include "data/fixture/fixture_build.h"
+#include "train/distributed.h"
 #include "train/pretrained.h"
 #include "train/train_resources.h"
 
@@ -104,13 +105,26 @@ TrainResult run_train(const std::string& requested, const std::vector<std::strin
   const std::vector<std::string> overrides = with_runs_root(given);
   auto job = load_job<TrainJobConfig>(file, overrides);
   RunsRootScope components_root(job.run.root);  // the runs its model trains go beside it
+  if (DataParallel* dp = loop.data_parallel) {
+    // Every rank must train the same run the same way: refused at the rendezvous
+    // otherwise (exit 2 on every rank). run.threads and run.root may differ per
+    // machine; they are no part of the identity.
+    dp->check_same_job({{"motionctl version", MOTIONCTL_VERSION},
+                        {"config hash", identity_hash(job)},
+                        {"processes", std::to_string(dp->world())},
+                        {"--stop-after", std::to_string(loop.stop_after)},
+                        {"--snapshot-every", std::to_string(loop.snapshot_every)},
+                        {"overlap", dp->options().overlap ? "on" : "off"},
+                        {"bucket bytes", std::to_string(dp->options().bucket_bytes)}});
+  }
+  const bool writer = !loop.data_parallel || loop.data_parallel->rank() == 0;
   check_train_resources(job);  // sizes and threads this machine cannot give: exit 2 before any work
-  ensure_training_data(job);
+  if (writer) ensure_training_data(job);  // ranks > 0 read it once rank 0 has started
   std::string name = default_run_name(file, job);
   // A component shipped in pretrained/ under this run's name and with this config
   // hash is installed, not retrained (named runs too: the hash guards them).
   const std::string dir_name = job.run.name.empty() ? name : job.run.name;
-  if (!job.run.force)
+  if (!job.run.force && writer)
     install_pretrained(job.run.experiment, dir_name, identity_hash(job),
                        fs::path(job.run.root) / job.run.experiment / dir_name, &std::cerr);
   TrainResult r = train(job, overrides, name, loop);

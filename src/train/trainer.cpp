@@ -7,7 +7,10 @@
 
 #include <chrono>
 #include <cmath>
+#include <csignal>
 #include <cstdlib>
+#include <cstring>
+#include <functional>
 #include <optional>
 #include <random>
 #include <sstream>
@@ -17,23 +20,10 @@
 #include "core/atomic_file.h"
 #include "core/error.h"
 #include "core/interrupt.h"
+#include "train/dependencies.h"
+#include "train/distributed.h"
 
 namespace mc {
-
-// ---------------------------------------------------------------- registry
-
-static std::map<std::string, TrainableFactory>& trainables() {
-  static std::map<std::string, TrainableFactory> r;
-  return r;
-}
-
-void register_trainable(const std::string& type, TrainableFactory make) { trainables()[type] = std::move(make); }
-
-std::unique_ptr<Trainable> make_trainable(const Component& model, const TrainContext& ctx) {
-  auto it = trainables().find(model.type);
-  if (it == trainables().end()) fail("model type '{}' has no trainer registered", model.type);
-  return it->second(*model.cfg, ctx);
-}
 
 // ---------------------------------------------------------------- schedule
 
@@ -56,7 +46,7 @@ double scheduled_lr(const OptimConfig& o, int64_t step) {
   return o.lr * (o.min_lr_ratio + (1.0 - o.min_lr_ratio) * 0.5 * (1.0 + std::cos(M_PI * progress)));
 }
 
-torch::Device setup_torch(const RunConfig& run) {
+torch::Device setup_torch(const RunConfig& run, int ranks_here) {
   check_thread_count(run.threads, "run.threads");  // thousands of threads stall the machine (core/resources.h)
   // 0 = all cores, unless OMP_NUM_THREADS says otherwise (ctest runs tests in
   // parallel with OMP_NUM_THREADS=1: oversubscribed cores make torch ~50x slower).
@@ -66,6 +56,8 @@ torch::Device setup_torch(const RunConfig& run) {
     threads = env && std::atoi(env) > 0 ? std::atoi(env)
                                         : static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
   }
+  // Data-parallel ranks on one machine share its threads (docs/choices.md).
+  if (ranks_here > 1) threads = std::max(1, threads / ranks_here);
   torch::set_num_threads(threads);
   torch::manual_seed(static_cast<uint64_t>(run.seed));
   try {
@@ -128,6 +120,27 @@ void EpochSampler::shuffle() {
   for (size_t b : perm) out.insert(out.end(), order_.begin() + b * batch_, order_.begin() + (b + 1) * batch_);
   out.insert(out.end(), order_.begin() + nb * batch_, order_.end());
   order_ = std::move(out);
+}
+
+void check_batch_divides(const TrainJobConfig& job, int processes) {
+  if (job.optim.batch_size % processes != 0)
+    fail("optim.batch_size = {} does not divide over {} data-parallel processes (the global batch is the config's; "
+         "each process computes batch_size / processes clips): use a multiple of {} (e.g. optim.batch_size={}) or "
+         "another process count",
+         job.optim.batch_size, processes, processes, (job.optim.batch_size / processes + 1) * processes);
+}
+
+LossOutput loss_share(Trainable& trainable, const std::vector<int64_t>& idx, DataParallel* dp) {
+  if (!dp) return trainable.loss(idx, BatchShard{});
+  if (!trainable.shards_batches()) {
+    LossOutput out = trainable.loss(idx, BatchShard{});
+    out.loss = out.loss / dp->world();
+    for (auto& [k, v] : out.parts) v = v / dp->world();
+    return out;
+  }
+  BatchShard shard(dp);
+  BatchRowsScope rows(shard.rows(static_cast<int64_t>(idx.size())));
+  return trainable.loss(idx, shard);
 }
 
 EpochSampler make_sampler(const TrainJobConfig& job, const MotionDataset& data) {
@@ -194,12 +207,12 @@ std::string serialize_checkpoint(Trainable& tr, torch::optim::Optimizer& opt, co
   return os.str();
 }
 
-void load_checkpoint(const fs::path& path, Trainable& tr, torch::optim::Optimizer& opt, std::vector<torch::Tensor>& ema,
-                     LoopState& st, EpochSampler& sampler, Logger& log) {
-  bool legacy = false;
-  std::istringstream in(read_checkpoint_payload(path, &legacy));
-  if (legacy)
-    log.info(fmt::format("{} predates checksummed checkpoints (format 1); loading it unchecked", path.string()));
+// Loads a checkpoint's archive bytes (`payload`; `source` names them in errors,
+// `legacy` for a format-1 file) into the loop's state.
+void load_checkpoint_bytes(const std::string& payload, bool legacy, const std::string& source, Trainable& tr,
+                           torch::optim::Optimizer& opt, std::vector<torch::Tensor>& ema, LoopState& st,
+                           EpochSampler& sampler) {
+  std::istringstream in(payload);
   torch::serialize::InputArchive ar;
   try {
     ar.load_from(in);
@@ -238,8 +251,8 @@ void load_checkpoint(const fs::path& path, Trainable& tr, torch::optim::Optimize
     sampler.restore(epoch.item<int64_t>(), pos.item<int64_t>());
     set_rng_state(rng);
   } catch (const c10::Error& e) {
-    fail("checkpoint '{}' is unreadable or belongs to another model ({}); delete it or use run.force=true",
-         path.string(), std::string(e.what_without_backtrace()).substr(0, 200));
+    fail("checkpoint '{}' is unreadable or belongs to another model ({}); delete it or use run.force=true", source,
+         std::string(e.what_without_backtrace()).substr(0, 200));
   }
 }
 
@@ -250,24 +263,29 @@ bool all_finite(const std::vector<torch::Tensor>& ts) {
   return true;
 }
 
+// The loss of one process (or this rank's share of it) on the global batch `idx`.
+using ShareOfLoss = std::function<LossOutput(const std::vector<int64_t>& idx)>;
+
 // The loss the weights would give on the next batch, without changing anything
 // the run carries on with (sampler copied, torch RNG restored, no gradients, eval
 // mode so no running statistic or EMA codebook moves): a checkpoint written where
 // the loop stops, and the last step's weights, are checked with it, since no
 // later step will. Weights of ~3e38 are finite yet give an infinite loss.
-double probe_loss(Trainable& tr, EpochSampler sampler, int batch) {
+// Data-parallel: every rank calls it at the same step and gets the summed loss.
+double probe_loss(Trainable& tr, const ShareOfLoss& loss, EpochSampler sampler, int batch, DataParallel* dp) {
   torch::Tensor rng = rng_state();
   const bool was_training = tr.module().is_training();
   tr.module().eval();
   double v = 0;
   try {
     torch::NoGradGuard ng;
-    v = tr.loss(sampler.next(batch)).loss.item<double>();
+    v = loss(sampler.next(batch)).loss.item<double>();
   } catch (const c10::Error&) {
     v = 0;  // a loss that cannot run without gradients is not probed; the weights were checked
   }
   tr.module().train(was_training);
   set_rng_state(rng);
+  if (dp) v = dp->sum_scalars({v}, "the loss probe")[0];
   return v;
 }
 
@@ -346,15 +364,18 @@ std::string read_checkpoint_payload(const fs::path& path, bool* legacy) {
     fail("checkpoint '{}' is corrupt: its SHA-1 is {}, the header says {}; {}", path.string(), got, sha, fix);
   return payload;
 }
-
 // ---------------------------------------------------------------- loop
 
 TrainResult train(TrainJobConfig& job, const std::vector<std::string>& overrides, const std::string& default_name,
                   const TrainLoopOptions& loop) {
   const int64_t stop_after = loop.stop_after;
+  DataParallel* dp = loop.data_parallel;  // null: one process
+  const bool writer = !dp || dp->rank() == 0;  // rank 0 alone touches the run directory
+  const int world = dp ? dp->world() : 1;
   if (job.run.checkpoint_every % job.run.log_every != 0)
     fail("run.checkpoint_every ({}) must be a multiple of run.log_every ({}) so checkpoints fall on logged steps",
          job.run.checkpoint_every, job.run.log_every);
+  check_batch_divides(job, world);
   TrainResult result;
   const std::string yaml = dump_config(job);
   const std::string identity = identity_yaml(job);
@@ -364,52 +385,130 @@ TrainResult train(TrainJobConfig& job, const std::vector<std::string>& overrides
     result.run_dir = run.path();
     result.skipped = true;
     result.summary = run.summary();
+    if (dp) dp->announce_start("finished");
     return result;
   };
-  // A finished run is a no-op: answered without loading data or building the model.
-  if (!job.run.force && fs::exists(RunDir::path_of(job.run, default_name) / "DONE")) {
-    RunDir run = RunDir::open(job.run, yaml, overrides, default_name, same);
-    if (run.finished()) return finished_result(run);
-  }
 
-  // Everything that can refuse the job is checked before the run directory is
-  // claimed, so a failed start leaves no directory (an explicit run.name stays free).
-  torch::Device device = setup_torch(job.run);
-  auto data = MotionDataset::load(resolve_data_path(job.data.path));
-  TrainContext ctx{data, device, &job, job.data.window, job.data.trim_padding};
-  auto trainable = make_trainable(job.model, ctx);
-  data->split("train");  // UserError naming the file and split when empty
-  for (const auto& s : trainable->evaluation_splits()) data->split(s);
-  trainable->module().to(device);
-  auto params = trainable->trainable_parameters();
+  // Everything the loop works on; rank 0 builds it first (it may train components
+  // the model needs, and claims the run directory), the other ranks once rank 0
+  // has started.
+  torch::Device device = torch::kCPU;
+  std::shared_ptr<MotionDataset> data;
+  std::unique_ptr<Trainable> trainable;
+  std::vector<torch::Tensor> params;
   int64_t n_params = 0;
-  for (auto& p : params) n_params += p.numel();
-
-  torch::optim::AdamW opt = make_optimizer(job.optim, params);
+  std::optional<torch::optim::AdamW> opt;
   std::vector<torch::Tensor> ema;
-  if (job.optim.ema_decay > 0)
-    for (auto& p : params) ema.push_back(p.detach().clone());
-  EpochSampler sampler = make_sampler(job, *data);
+  std::optional<EpochSampler> sampler;
+  auto build = [&] {
+    // Everything that can refuse the job is checked before the run directory is
+    // claimed, so a failed start leaves no directory (an explicit run.name stays free).
+    device = setup_torch(job.run, dp ? dp->env().local_world : 1);
+    const int threads = torch::get_num_threads();
+    data = MotionDataset::load(resolve_data_path(job.data.path));
+    TrainContext ctx{data, device, &job, job.data.window, job.data.trim_padding, job.optim.ema_decay};
+    // The components the model is built on (a frozen base, a tokenizer, a text
+    // encoder) are trained here, by the job, if missing; the model only loads them.
+    resolve_dependencies(job.model);
+    trainable = make_trainable(job.model, ctx);
+    // A component trained on demand for the model (rank 0) sets its own thread count.
+    if (dp) torch::set_num_threads(threads);
+    data->split("train");  // UserError naming the file and split when empty
+    for (const auto& s : trainable->evaluation_splits()) data->split(s);
+    trainable->module().to(device);
+    params = trainable->trainable_parameters();
+    for (auto& p : params) n_params += p.numel();
+    opt.emplace(make_optimizer(job.optim, params));
+    if (job.optim.ema_decay > 0)
+      for (auto& p : params) ema.push_back(p.detach().clone());
+    sampler.emplace(make_sampler(job, *data));
+  };
 
-  RunDir run = RunDir::open(job.run, yaml, overrides, default_name, same);
-  result.run_dir = run.path();
-  if (run.finished()) return finished_result(run);  // finished by another process meanwhile
-  InterruptScope interrupt_scope;
-  MetricsCsv metrics(run.metrics_path());
+  std::optional<RunDir> run_holder;
+  std::optional<InterruptScope> interrupt_scope;
+  std::optional<MetricsCsv> metrics;
   LoopState st;
-  fs::path last = run.checkpoints() / "last.pt";
+  fs::path last;
   int64_t saved_step = -1;  // step of the checkpoint on disk (-1: none)
-  if (fs::exists(last)) {
-    load_checkpoint(last, *trainable, opt, ema, st, sampler, run.log());
-    saved_step = st.step;
-    metrics.truncate_after(st.step);
-    run.log().info(fmt::format("resuming {} from step {} ({} threads)", run.path().string(), st.step,
-                               torch::get_num_threads()));
+  Logger quiet;             // ranks > 0: nothing is logged (the lines would go to stderr only)
+  std::string start_state;  // rank 0's state at the start, for the other ranks
+  if (writer) {
+    try {
+      // A finished run is a no-op: answered without loading data or building the model.
+      if (!job.run.force && fs::exists(RunDir::path_of(job.run, default_name) / "DONE")) {
+        RunDir run = RunDir::open(job.run, yaml, overrides, default_name, same);
+        if (run.finished()) return finished_result(run);
+      }
+      build();
+      run_holder.emplace(RunDir::open(job.run, yaml, overrides, default_name, same));
+      RunDir& run = *run_holder;
+      result.run_dir = run.path();
+      if (run.finished()) return finished_result(run);  // finished by another process meanwhile
+      interrupt_scope.emplace();
+      metrics.emplace(run.metrics_path());
+      last = run.checkpoints() / "last.pt";
+      const std::string ranks = dp ? fmt::format(", {} data-parallel processes", world) : "";
+      if (fs::exists(last)) {
+        bool legacy = false;
+        const std::string payload = read_checkpoint_payload(last, &legacy);
+        if (legacy)
+          run.log().info(
+              fmt::format("{} predates checksummed checkpoints (format 1); loading it unchecked", last.string()));
+        load_checkpoint_bytes(payload, legacy, last.string(), *trainable, *opt, ema, st, *sampler);
+        saved_step = st.step;
+        metrics->truncate_after(st.step);
+        run.log().info(fmt::format("resuming {} from step {} ({} threads{})", run.path().string(), st.step,
+                                   torch::get_num_threads(), ranks));
+        if (dp) start_state = payload;
+      } else {
+        fs::remove(run.metrics_path());
+        run.log().info(fmt::format("training {} ({} trainable parameters, {} threads{}, device {}) in {}",
+                                   job.model.type, n_params, torch::get_num_threads(), ranks, device.str(),
+                                   run.path().string()));
+      }
+    } catch (const UserError& e) {
+      if (dp) dp->announce_start(std::string("error: ") + e.what());
+      throw;
+    } catch (const std::exception& e) {
+      if (dp) dp->announce_start(std::string("failed: ") + e.what());
+      throw;
+    }
   } else {
-    fs::remove(run.metrics_path());
-    run.log().info(fmt::format("training {} ({} trainable parameters, {} threads, device {}) in {}", job.model.type,
-                               n_params, torch::get_num_threads(), device.str(), run.path().string()));
+    const std::string status = dp->await_start();
+    if (status == "finished") {
+      result.run_dir = RunDir::path_of(job.run, default_name);
+      result.skipped = true;
+      return result;
+    }
+    if (status.rfind("error: ", 0) == 0)
+      fail("rank 0 could not start the job: {}", status.substr(std::strlen("error: ")));
+    if (status != "ok")
+      throw DataParallelError(fmt::format("data-parallel rank {}: rank 0 failed to start ({})", dp->rank(), status));
+    build();
+    interrupt_scope.emplace();
+    result.run_dir = RunDir::path_of(job.run, default_name);
   }
+  Logger& log = writer ? run_holder->log() : quiet;
+
+  // Data-parallel: rank 0's state (its last checkpoint, or its freshly built weights)
+  // reaches every rank, so all start from the same weights, optimiser, EMA, step,
+  // data position and random stream; then the gradient buckets.
+  if (dp) {
+    if (writer) {
+      if (start_state.empty()) start_state = serialize_checkpoint(*trainable, *opt, ema, st, *sampler);
+      dp->announce_start("ok");
+    }
+    dp->broadcast(start_state);
+    if (!writer) {
+      load_checkpoint_bytes(start_state, false, "rank 0's training state", *trainable, *opt, ema, st, *sampler);
+      saved_step = st.step;
+    }
+    start_state.clear();
+    start_state.shrink_to_fit();
+    dp->attach(params);
+  }
+
+  const ShareOfLoss share = [&](const std::vector<int64_t>& idx) { return loss_share(*trainable, idx, dp); };
 
   auto diverged = [&](const std::string& what) {
     const std::string kept = saved_step >= 0 ? fmt::format("its last good checkpoint (step {}) is kept", saved_step)
@@ -417,7 +516,7 @@ TrainResult train(TrainJobConfig& job, const std::vector<std::string>& overrides
     fail("training diverged: {} in {}; nothing of the diverged steps was saved ({}). Lower optim.lr (now {:g}), or "
          "raise optim.warmup (now {}) or lower optim.grad_clip (now {:g}), and train again (a changed optim "
          "value is a new run)",
-         what, run.path().string(), kept, job.optim.lr, job.optim.warmup, job.optim.grad_clip);
+         what, result.run_dir.string(), kept, job.optim.lr, job.optim.warmup, job.optim.grad_clip);
   };
 
   const auto t0 = std::chrono::steady_clock::now();
@@ -428,11 +527,12 @@ TrainResult train(TrainJobConfig& job, const std::vector<std::string>& overrides
   auto snapshot_state = [&] {
     LoopState s = st;
     s.wall = wall_now();
-    return serialize_checkpoint(*trainable, opt, ema, s, sampler);
+    return serialize_checkpoint(*trainable, *opt, ema, s, *sampler);
   };
   // A periodic checkpoint is written only once the next step's loss shows its
   // weights are sound (weights of ~3e38 are finite, yet give an infinite loss):
-  // a diverged run never leaves a checkpoint it cannot resume from.
+  // a diverged run never leaves a checkpoint it cannot resume from. Every rank
+  // keeps the bookkeeping; rank 0 alone holds and writes the bytes.
   struct Pending {
     int64_t step;
     std::string bytes;
@@ -440,7 +540,7 @@ TrainResult train(TrainJobConfig& job, const std::vector<std::string>& overrides
   std::optional<Pending> pending;
   auto commit_pending = [&] {
     if (!pending) return;
-    write_checkpoint_file(last, pending->bytes);
+    if (writer) write_checkpoint_file(last, pending->bytes);
     saved_step = pending->step;
     pending.reset();
   };
@@ -448,26 +548,42 @@ TrainResult train(TrainJobConfig& job, const std::vector<std::string>& overrides
   // this checkpoint, so the weights and a probe of the next batch's loss do.
   auto checkpoint_here = [&] {
     if (saved_step == st.step) return;
-    if (!pending || pending->step != st.step) pending = Pending{st.step, snapshot_state()};
+    if (!pending || pending->step != st.step) pending = Pending{st.step, writer ? snapshot_state() : std::string()};
     if (!all_finite(params) || !all_finite(ema)) diverged(fmt::format("the weights are not finite at step {}", st.step));
-    const double probe = probe_loss(*trainable, sampler, job.optim.batch_size);
+    const double probe = probe_loss(*trainable, share, *sampler, job.optim.batch_size, dp);
     if (!std::isfinite(probe)) diverged(fmt::format("the weights of step {} give a loss of {}", st.step, probe));
     commit_pending();
   };
 
   while (st.step < job.optim.steps) {
     double lr = scheduled_lr(job.optim, st.step);
-    for (auto& g : opt.param_groups()) static_cast<torch::optim::AdamWOptions&>(g.options()).lr(lr);
-    auto idx = sampler.next(job.optim.batch_size);
-    LossOutput out = trainable->loss(idx);
-    double loss_v = out.loss.item<double>();
+    for (auto& g : opt->param_groups()) static_cast<torch::optim::AdamWOptions&>(g.options()).lr(lr);
+    auto idx = sampler->next(job.optim.batch_size);
+    LossOutput out = share(idx);
+    opt->zero_grad();
+    if (dp) dp->begin_backward();
+    out.loss.backward();
+    const std::string step_name = fmt::format("step {}", st.step + 1);
+    if (dp) dp->finish_gradients(step_name);
+    // The step's loss and parts (summed shares), and whether a rank was asked to
+    // stop: every rank then decides the same.
+    std::vector<double> scalars{out.loss.item<double>()};
+    for (auto& [k, v] : out.parts) scalars.push_back(v.item<double>());
+    int stop_signal = 0;
+    if (dp) {
+      const int sig = interrupt_requested();
+      scalars.push_back(sig == SIGINT ? 1 : 0);
+      scalars.push_back(sig != 0 && sig != SIGINT ? 1 : 0);
+      scalars = dp->sum_scalars(scalars, fmt::format("the loss of {}", step_name));
+      const double term = scalars.back(), intr = scalars[scalars.size() - 2];
+      stop_signal = term > 0 ? SIGTERM : intr > 0 ? SIGINT : 0;
+    }
+    const double loss_v = scalars[0];
     if (!std::isfinite(loss_v)) diverged(fmt::format("the loss is {} at step {}", loss_v, st.step));
     commit_pending();  // the weights it holds just gave a finite loss
-    opt.zero_grad();
-    out.loss.backward();
     double gnorm = 0;
     if (job.optim.grad_clip > 0) gnorm = torch::nn::utils::clip_grad_norm_(params, job.optim.grad_clip);
-    opt.step();
+    opt->step();
     if (!ema.empty()) {
       torch::NoGradGuard ng;
       double d = std::min(job.optim.ema_decay, (1.0 + st.step) / (10.0 + st.step));  // warm EMA for short runs
@@ -475,7 +591,7 @@ TrainResult train(TrainJobConfig& job, const std::vector<std::string>& overrides
     }
     ++st.step;
     st.accum["loss"] += loss_v;
-    for (auto& [k, v] : out.parts) st.accum[k] += v.item<double>();
+    for (size_t i = 0; i < out.parts.size(); ++i) st.accum[out.parts[i].first] += scalars[1 + i];
     st.accum["grad_norm"] += gnorm;
     ++st.accum_n;
     st.last_loss = loss_v;
@@ -484,69 +600,79 @@ TrainResult train(TrainJobConfig& job, const std::vector<std::string>& overrides
     double ips = (st.step - first_step) / std::max(1e-9, elapsed);
     std::string line = fmt::format("step {}/{} loss {:.5f} lr {:.2e} {:.1f} it/s ETA {}", st.step, job.optim.steps,
                                    loss_v, lr, ips, format_eta((job.optim.steps - st.step) / ips));
-    run.log().progress(line);
+    if (writer) log.progress(line);
     bool last_step = st.step == job.optim.steps;
     if (st.step % job.run.log_every == 0 || last_step) {
       std::vector<std::pair<std::string, double>> row{{"wall_time", wall_now()}, {"lr", lr}};
       for (auto& [k, v] : st.accum) row.emplace_back(k, v / st.accum_n);
-      metrics.append(st.step, row);
+      if (writer) metrics->append(st.step, row);
       st.accum.clear();
       st.accum_n = 0;
-      if (!Logger::interactive()) run.log().info(line);
+      if (writer && !Logger::interactive()) log.info(line);
     }
     if (st.step % job.run.checkpoint_every == 0 && !last_step) {
       if (!all_finite(params) || !all_finite(ema)) diverged(fmt::format("the weights are not finite at step {}", st.step));
-      pending = Pending{st.step, snapshot_state()};
+      pending = Pending{st.step, writer ? snapshot_state() : std::string()};
     }
     if (loop.snapshot_every > 0 && st.step % loop.snapshot_every == 0 && !last_step) {
       if (!all_finite(params) || !all_finite(ema)) diverged(fmt::format("the weights are not finite at step {}", st.step));
-      // The weights final.pt would hold now: EMA swapped in, saved, swapped back.
-      torch::NoGradGuard ng;
-      std::vector<torch::Tensor> live;
-      for (size_t i = 0; i < ema.size(); ++i) {
-        live.push_back(params[i].detach().clone());
-        params[i].copy_(ema[i]);
+      if (writer) {
+        // The weights final.pt would hold now: EMA swapped in, saved, swapped back.
+        torch::NoGradGuard ng;
+        std::vector<torch::Tensor> live;
+        for (size_t i = 0; i < ema.size(); ++i) {
+          live.push_back(params[i].detach().clone());
+          params[i].copy_(ema[i]);
+        }
+        torch::serialize::OutputArchive ar;
+        trainable->module().save(ar);
+        AtomicOutput snap(run_holder->checkpoints() / fmt::format("snapshot_{:06d}.pt", st.step));
+        ar.save_to(snap.tmp_path().string());
+        snap.commit();
+        for (size_t i = 0; i < live.size(); ++i) params[i].copy_(live[i]);
+        // Vocabulary and metadata too, so a snapshot of a run still training can be loaded.
+        trainable->save_artifacts(run_holder->outputs());
       }
-      torch::serialize::OutputArchive ar;
-      trainable->module().save(ar);
-      AtomicOutput out(run.checkpoints() / fmt::format("snapshot_{:06d}.pt", st.step));
-      ar.save_to(out.tmp_path().string());
-      out.commit();
-      for (size_t i = 0; i < live.size(); ++i) params[i].copy_(live[i]);
-      // Vocabulary and metadata too, so a snapshot of a run still training can be loaded.
-      trainable->save_artifacts(run.outputs());
     }
     if (last_step) break;
-    if (const int sig = interrupt_requested()) {
-      run.log().end_progress();
+    // One process acts on a signal as soon as the step ends; data-parallel ranks on
+    // the step's summed flags, so they all stop at the same step.
+    if (const int sig = dp ? stop_signal : interrupt_requested()) {
+      if (writer) log.end_progress();
       checkpoint_here();
       clear_interrupt();
       const std::string msg = fmt::format("interrupted by signal {} at step {}: checkpoint written in {}; running "
                                           "the same command again resumes from it",
-                                          sig, st.step, last.string());
-      run.log().info(msg);
+                                          sig, st.step, (result.run_dir / "checkpoints" / "last.pt").string());
+      if (writer) log.info(msg);
       throw Interrupted(sig, msg);
     }
     if (stop_after > 0 && st.step - first_step >= stop_after) {
-      run.log().end_progress();
+      if (writer) log.end_progress();
       checkpoint_here();
-      run.log().info(fmt::format("stopping at step {} as asked: checkpoint written in {}; running the same command "
-                                 "again resumes from it",
-                                 st.step, last.string()));
+      if (writer)
+        log.info(fmt::format("stopping at step {} as asked: checkpoint written in {}; running the same command "
+                             "again resumes from it",
+                             st.step, last.string()));
       result.summary["step"] = st.step;
       return result;
     }
   }
-  run.log().end_progress();
+  if (writer) log.end_progress();
 
   // The end: the training state of the last step, then the final weights (the
   // EMA copy when there is one) and their evaluation. Each is checked before
   // anything is written, so last.pt, final.pt, summary.csv and DONE only ever
   // hold finite numbers; last.pt comes first, so a kill before DONE resumes
-  // here without training again.
+  // here without training again. Ranks > 0 are done once the weights are checked.
   if (!all_finite(params) || !all_finite(ema)) diverged(fmt::format("the weights are not finite at step {}", st.step));
-  if (const double probe = probe_loss(*trainable, sampler, job.optim.batch_size); !std::isfinite(probe))
+  if (const double probe = probe_loss(*trainable, share, *sampler, job.optim.batch_size, dp); !std::isfinite(probe))
     diverged(fmt::format("the weights of the last step ({}) give a loss of {}", st.step, probe));
+  if (!writer) {
+    result.summary["step"] = st.step;
+    return result;
+  }
+  RunDir& run = *run_holder;
   if (std::isnan(st.last_loss)) st.last_loss = last_logged_loss(run.metrics_path());  // format-1 checkpoint
   const std::string final_state = snapshot_state();
   if (!ema.empty()) {
@@ -570,7 +696,7 @@ TrainResult train(TrainJobConfig& job, const std::vector<std::string>& overrides
     out.commit();
   }
   trainable->save_artifacts(run.outputs());
-  for (auto& [k, v] : summary) run.log().info(fmt::format("  {} = {:.6g}", k, v));
+  for (auto& [k, v] : summary) log.info(fmt::format("  {} = {:.6g}", k, v));
   run.mark_finished(summary);
   result.summary = summary;
   return result;

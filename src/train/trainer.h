@@ -6,10 +6,12 @@
 
 #include "core/config.h"
 #include "core/run_dir.h"
-#include "train/motion_dataset.h"
-#include "train/trainable.h"
+#include "models/motion_dataset.h"
+#include "models/trainable.h"
 
 namespace mc {
+
+class DataParallel;  // train/distributed.h
 
 struct OptimConfig : Config {
   int steps = 1000;
@@ -96,8 +98,19 @@ class EpochSampler {
 // The training sampler a job uses: its train split, seed, batch and length buckets.
 EpochSampler make_sampler(const TrainJobConfig& job, const MotionDataset& data);
 
-// Applies run.threads/device/seed; returns the device.
-torch::Device setup_torch(const RunConfig& run);
+// UserError unless optim.batch_size (the global batch) divides over `processes`.
+void check_batch_divides(const TrainJobConfig& job, int processes);
+
+// This rank's share of the loss of the global batch `idx` (train/batch_shard.h):
+// the whole batch in one process (dp null); with data parallelism the rank's shard
+// when the trainable computes shards (its dropout rows set, models/sharded_dropout.h),
+// else the whole batch on every rank, counted 1 / ranks times.
+LossOutput loss_share(Trainable& trainable, const std::vector<int64_t>& idx, DataParallel* dp);
+
+// Applies run.threads/device/seed; returns the device. `ranks_here` processes of a
+// data-parallel job share this machine: each takes run.threads / ranks_here
+// threads (at least one; run.threads = 0 means all cores, or $OMP_NUM_THREADS).
+torch::Device setup_torch(const RunConfig& run, int ranks_here = 1);
 
 // checkpoints/last.pt: a header line "motionctl-checkpoint <format> sha1 <hex>
 // bytes <n>" then the torch archive it checks. Format 1 (a bare archive, before
@@ -121,6 +134,12 @@ struct TrainLoopOptions {
   // at that step (the EMA copy when there is one) to checkpoints/snapshot_NNNNNN.pt,
   // in final.pt's format, for curves of health against training time.
   int64_t snapshot_every = 0;
+  // Data-parallel training (issue 19; train/distributed.h): this process is one rank
+  // of the job, which has already joined. Each rank computes its shard of every
+  // global batch (optim.batch_size must divide over the ranks), gradients and the
+  // step's scalars are summed over the ranks, and rank 0 alone writes the run
+  // directory (lock, logs, metrics, checkpoints, final weights). Null: one process.
+  DataParallel* data_parallel = nullptr;
 };
 
 // Trains (or resumes, or skips) the run described by `job`. `default_name` names
@@ -128,7 +147,8 @@ struct TrainLoopOptions {
 // call (RunLock) and claimed only once data, splits, device and model are
 // checked. A non-finite loss or weight stops it with a UserError naming the knob
 // to change, before anything of the diverged steps is written. SIGINT/SIGTERM
-// write a checkpoint at the step reached and throw Interrupted.
+// write a checkpoint at the step reached and throw Interrupted (data-parallel:
+// every rank stops at the same step).
 TrainResult train(TrainJobConfig& job, const std::vector<std::string>& overrides, const std::string& default_name,
                   const TrainLoopOptions& loop = {});
 

@@ -6,7 +6,7 @@
 #include <regex>
 
 #include "data/motion_set.h"
-#include "samplers/flow_test_util.h"
+#include "models/flow_prior_test_util.h"
 #include "test_util.h"
 
 using namespace mc;
@@ -16,7 +16,7 @@ TEST_CASE("motionctl generate: every application config runs and satisfies its h
   TempDir dir("generate");
   const std::string fx = (dir.path / "fx.h5").string(), prior = (dir.path / "prior").string();
   REQUIRE(run_motionctl(fmt::format("fixture configs/data/smoke.yaml output={} fixture.num_clips=30", fx)).exit_code == 0);
-  write_prior_run(prior, "flow_prior", 196);
+  write_random_prior_run(prior, 196);
   for (std::string app : {"keyframes", "trajectory", "lifting", "relative", "loop", "upper_body_edit"}) {
     const std::string out = (dir.path / (app + ".h5")).string();
     auto r = run_motionctl(fmt::format(
@@ -58,7 +58,7 @@ TEST_CASE("motionctl generate: the floor application and every inequality / dire
   TempDir dir("generate_ineq");
   const std::string fx = (dir.path / "fx.h5").string(), prior = (dir.path / "prior").string();
   REQUIRE(run_motionctl(fmt::format("fixture configs/data/smoke.yaml output={} fixture.num_clips=30", fx)).exit_code == 0);
-  write_prior_run(prior, "flow_prior", 196);
+  write_random_prior_run(prior, 196);
   auto value = [](const std::string& out, const std::string& pattern) {
     std::smatch match;
     REQUIRE(std::regex_search(out, match, std::regex(pattern + " ([0-9.e+-]+)")));

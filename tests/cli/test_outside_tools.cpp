@@ -13,7 +13,7 @@
 #include "eval/eval_outputs.h"
 #include "eval/metrics.h"
 #include "eval/t2m_evaluator.h"
-#include "samplers/flow_test_util.h"
+#include "models/flow_prior_test_util.h"
 #include "test_util.h"
 
 using namespace mc;
@@ -46,7 +46,7 @@ TEST_CASE("score on a generate output reproduces the generator's printed control
   TempDir dir("outside_gen");
   const std::string fx = (dir.path / "fx.h5").string(), prior = (dir.path / "prior").string();
   REQUIRE(run_motionctl(fmt::format("fixture configs/data/smoke.yaml output={} fixture.num_clips=30", fx)).exit_code == 0);
-  write_prior_run(prior, "flow_prior", 196);
+  write_random_prior_run(prior, 196);
 
   SECTION("protocol tasks: 2D lifting under guidance (non-zero errors, cameras stored)") {
     const std::string out = (dir.path / "lift.h5").string();

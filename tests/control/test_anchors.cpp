@@ -10,6 +10,7 @@
 #include "control_test_util.h"
 #include "core/error.h"
 #include "data/skeleton.h"
+#include "test_util.h"
 
 using namespace mc;
 using namespace mc::test;
@@ -17,19 +18,6 @@ using namespace mc::test;
 namespace {
 
 const Skeleton& skel() { return humanml3d_skeleton(); }
-
-template <class F>
-void expect_user_error(F&& f, const std::vector<std::string>& fragments) {
-  try {
-    f();
-  } catch (const UserError& e) {
-    std::string msg = e.what();
-    INFO("message: " << msg);
-    for (auto& frag : fragments) CHECK(msg.find(frag) != std::string::npos);
-    return;
-  }
-  FAIL("expected a UserError mentioning " << fragments.front());
-}
 
 double cubic(double x, int c) { return 0.3 + (0.1 + c) * x - 0.02 * x * x + 0.001 * (c + 1) * x * x * x; }
 

@@ -27,20 +27,6 @@ LinearObservation compile_yaml(const std::string& yaml, int T = 8, bool with_sou
   return compile(parse_constraint_spec_yaml(yaml, "spec.yaml"), T, skel(), with_source ? src.data() : nullptr);
 }
 
-// Runs `f`, expecting a UserError whose message contains every fragment.
-template <class F>
-void expect_user_error(F&& f, const std::vector<std::string>& fragments) {
-  try {
-    f();
-  } catch (const UserError& e) {
-    std::string msg = e.what();
-    INFO("message: " << msg);
-    for (auto& frag : fragments) CHECK(msg.find(frag) != std::string::npos);
-    return;
-  }
-  FAIL("expected a UserError mentioning " << fragments.front());
-}
-
 }  // namespace
 
 TEST_CASE("camera rows are s * P * R_z(roll) R_x(pitch) R_y(yaw)", "[control]") {

@@ -25,17 +25,6 @@ using Catch::Matchers::Contains;
 
 namespace {
 
-template <class F>
-std::string user_error(F&& f) {
-  try {
-    f();
-  } catch (const UserError& e) {
-    return e.what();
-  }
-  FAIL("no UserError");
-  return "";
-}
-
 std::string bytes_of(const fs::path& p) {
   std::ifstream f(p, std::ios::binary);
   return std::string(std::istreambuf_iterator<char>(f), {});
@@ -59,19 +48,19 @@ MotionSet small_set() {
 }  // namespace
 
 TEST_CASE("strict YAML: duplicate keys, extra documents and complex keys name the line", "[core][robust]") {
-  CHECK_THAT(user_error([] { parse_yaml_strict("a: 1\nb:\n  c: 2\n  c: 3\n", "f.yaml"); }),
+  CHECK_THAT(user_error_of([] { parse_yaml_strict("a: 1\nb:\n  c: 2\n  c: 3\n", "f.yaml"); }),
              Contains("f.yaml:4") && Contains("'c' is given twice") && Contains("line 3"));
-  CHECK_THAT(user_error([] { parse_yaml_strict("a: 1\n---\nb: 2\n", "f.yaml"); }),
+  CHECK_THAT(user_error_of([] { parse_yaml_strict("a: 1\n---\nb: 2\n", "f.yaml"); }),
              Contains("f.yaml:3") && Contains("second document"));
-  CHECK_THAT(user_error([] { parse_yaml_strict("a: 1\n---\n", "f.yaml"); }), Contains("second document"));
-  CHECK_THAT(user_error([] { parse_yaml_strict("a: 1\n? [x, y]\n: 2\n", "f.yaml"); }),
+  CHECK_THAT(user_error_of([] { parse_yaml_strict("a: 1\n---\n", "f.yaml"); }), Contains("second document"));
+  CHECK_THAT(user_error_of([] { parse_yaml_strict("a: 1\n? [x, y]\n: 2\n", "f.yaml"); }),
              Contains("f.yaml:2") && Contains("complex key"));
-  CHECK_THAT(user_error([] { parse_yaml_strict("a: &x [*x]\n", "f.yaml"); }), Contains("deeper than 64"));
+  CHECK_THAT(user_error_of([] { parse_yaml_strict("a: &x [*x]\n", "f.yaml"); }), Contains("deeper than 64"));
   std::string bomb = "a0: &a0 [1, 1, 1, 1, 1, 1, 1, 1, 1, 1]\n";
   for (int i = 1; i < 7; ++i)
     bomb += fmt::format("a{}: &a{} [*a{}, *a{}, *a{}, *a{}, *a{}, *a{}, *a{}, *a{}, *a{}, *a{}]\n", i, i, i - 1, i - 1,
                         i - 1, i - 1, i - 1, i - 1, i - 1, i - 1, i - 1, i - 1);
-  CHECK_THAT(user_error([&] { parse_yaml_strict(bomb, "f.yaml"); }), Contains("million"));
+  CHECK_THAT(user_error_of([&] { parse_yaml_strict(bomb, "f.yaml"); }), Contains("million"));
   CHECK(parse_yaml_strict("a: 1\nb: [1, 2]\nc: {d: 3}\n", "f.yaml")["c"]["d"].as<int>() == 3);
   CHECK(parse_yaml_strict("---\na: 1\n", "f.yaml")["a"].as<int>() == 1);  // one explicit document is fine
 }
@@ -82,14 +71,14 @@ TEST_CASE("configs: duplicate keys, bad defaults entries and directories are exi
     std::ofstream(t.path / name) << text;
     return (t.path / name).string();
   };
-  CHECK_THAT(user_error([&] { compose_config(write("dup.yaml", "x: 1\nx: 2\n")); }),
+  CHECK_THAT(user_error_of([&] { compose_config(write("dup.yaml", "x: 1\nx: 2\n")); }),
              Contains("dup.yaml:2") && Contains("twice"));
-  CHECK_THAT(user_error([&] { compose_config(write("dl.yaml", "defaults:\n  - data: [a, b]\n")); }),
+  CHECK_THAT(user_error_of([&] { compose_config(write("dl.yaml", "defaults:\n  - data: [a, b]\n")); }),
              Contains("dl.yaml:2") && Contains("names a list"));
-  CHECK_THAT(user_error([&] { compose_config(write("dm.yaml", "defaults:\n  - [a]\n")); }),
+  CHECK_THAT(user_error_of([&] { compose_config(write("dm.yaml", "defaults:\n  - [a]\n")); }),
              Contains("dm.yaml:2") && Contains("defaults entries"));
-  CHECK_THAT(user_error([&] { compose_config(t.path.string()); }), Contains("is a directory"));
-  CHECK_THAT(user_error([&] { compose_config(write("ok.yaml", "x: 1\n"), {"x={[1]: 2}"}); }),
+  CHECK_THAT(user_error_of([&] { compose_config(t.path.string()); }), Contains("is a directory"));
+  CHECK_THAT(user_error_of([&] { compose_config(write("ok.yaml", "x: 1\n"), {"x={[1]: 2}"}); }),
              Contains("complex key"));
 }
 
@@ -107,10 +96,10 @@ TEST_CASE("sealed motion files: any changed byte is refused before libhdf5 reads
     bad[pos] = static_cast<char>(bad[pos] ^ 0x10);
     std::ofstream(path, std::ios::binary | std::ios::trunc) << bad;
     INFO("byte " << pos);
-    CHECK_THAT(user_error([&] { read_motion_file(path); }), Contains("m.h5") && Contains("damaged"));
+    CHECK_THAT(user_error_of([&] { read_motion_file(path); }), Contains("m.h5") && Contains("damaged"));
   }
   std::ofstream(path, std::ios::binary | std::ios::trunc) << good.substr(0, good.size() - 7);
-  CHECK_THAT(user_error([&] { read_motion_file(path); }), Contains("truncated"));
+  CHECK_THAT(user_error_of([&] { read_motion_file(path); }), Contains("truncated"));
 
   // Without a seal (an older file, or h5py's) it is read as before.
   std::string unsealed = good;
@@ -122,12 +111,12 @@ TEST_CASE("sealed motion files: any changed byte is refused before libhdf5 reads
 
 TEST_CASE("isolated_probe turns a crash, a hang or an exception in the child into a UserError", "[core][robust]") {
   isolated_probe("nothing", [] {});
-  CHECK_THAT(user_error([] { isolated_probe("file 'x.h5'", [] { std::raise(SIGSEGV); }); }),
+  CHECK_THAT(user_error_of([] { isolated_probe("file 'x.h5'", [] { std::raise(SIGSEGV); }); }),
              Contains("file 'x.h5'") && Contains("crashed"));
-  CHECK_THAT(user_error([] { isolated_probe("x", [] { fail("the child's own message"); }); }),
+  CHECK_THAT(user_error_of([] { isolated_probe("x", [] { fail("the child's own message"); }); }),
              Contains("the child's own message"));
-  CHECK_THAT(user_error([] { isolated_probe("x", [] { throw std::bad_alloc(); }); }), Contains("more memory"));
-  CHECK_THAT(user_error([] {
+  CHECK_THAT(user_error_of([] { isolated_probe("x", [] { throw std::bad_alloc(); }); }), Contains("more memory"));
+  CHECK_THAT(user_error_of([] {
                isolated_probe("file 'slow.h5'", [] { std::this_thread::sleep_for(std::chrono::seconds(30)); }, 0.5);
              }),
              Contains("slow.h5") && Contains("did not finish"));
@@ -136,10 +125,10 @@ TEST_CASE("isolated_probe turns a crash, a hang or an exception in the child int
 TEST_CASE("sizes and thread counts the machine cannot give are refused naming the key", "[core][robust]") {
   CHECK(available_memory_bytes() > 0);
   require_memory(1e6L, "a small thing", "", "");
-  CHECK_THAT(user_error([] { require_memory(1e18L, "the fixture", "fixture.num_clips=1e12", "lower it"); }),
+  CHECK_THAT(user_error_of([] { require_memory(1e18L, "the fixture", "fixture.num_clips=1e12", "lower it"); }),
              Contains("fixture.num_clips") && Contains("available") && Contains("lower it"));
   check_thread_count(0, "run.threads");
   check_thread_count(usable_cpus(), "run.threads");
-  CHECK_THAT(user_error([] { check_thread_count(4096, "run.threads"); }),
+  CHECK_THAT(user_error_of([] { check_thread_count(4096, "run.threads"); }),
              Contains("run.threads=4096") && Contains("CPU"));
 }

@@ -12,6 +12,9 @@
 #include "core/config.h"
 #include "core/error.h"
 #include "data/fixture/fixture.h"
+#include "test_util.h"
+
+using mc::test::user_error_of;
 
 namespace {
 
@@ -110,20 +113,6 @@ mc::FixtureJobConfig load_job(const std::string& path) {
   return job;
 }
 
-// The message of the mc::UserError `f` throws ("" if it throws nothing or
-// something else), for CHECK_THAT(..., Contains(...)).
-template <class F>
-std::string user_error(F&& f) {
-  try {
-    f();
-  } catch (const mc::UserError& e) {
-    return e.what();
-  } catch (...) {
-    return "<not a UserError>";
-  }
-  return "";
-}
-
 }  // namespace
 
 TEST_CASE("fixture bones keep the skeleton's lengths in every frame", "[fixture]") {
@@ -148,7 +137,7 @@ TEST_CASE("fixture bone lengths follow the skeleton it is given", "[fixture]") {
             Approx(big.bone_lengths[j]).margin(1e-5));
   mc::Skeleton renamed = skel();
   renamed.joint_names[J("l_knee")] = "left_knee";
-  CHECK_THAT(user_error([&] { mc::generate_fixture(small_config(2), renamed); }), Catch::Matchers::Contains("l_knee"));
+  CHECK_THAT(user_error_of([&] { mc::generate_fixture(small_config(2), renamed); }), Catch::Matchers::Contains("l_knee"));
 }
 
 TEST_CASE("fixture clips stand on the floor: min y = 0 exactly, touched by a foot", "[fixture]") {
@@ -440,11 +429,11 @@ TEST_CASE("bad fixture config values are user errors naming the key", "[fixture]
     return job;
   };
   CHECK(parse("fixture: {num_clips: 7}").fixture.num_clips == 7);
-  CHECK_THAT(user_error([&] { parse("fixture: {captions_per_clip: 2}"); }), Catch::Matchers::Contains("captions_per_clip"));
-  CHECK_THAT(user_error([&] { parse("fixture: {train_fraction: 0.9}"); }), Catch::Matchers::Contains("train_fraction"));
-  CHECK_THAT(user_error([&] { parse("fixture: {max_frames: 300}"); }), Catch::Matchers::Contains("t_max"));
-  CHECK_THAT(user_error([&] { parse("fixture: {num_clip: 3}"); }), Catch::Matchers::Contains("did you mean 'num_clips'"));
+  CHECK_THAT(user_error_of([&] { parse("fixture: {captions_per_clip: 2}"); }), Catch::Matchers::Contains("captions_per_clip"));
+  CHECK_THAT(user_error_of([&] { parse("fixture: {train_fraction: 0.9}"); }), Catch::Matchers::Contains("train_fraction"));
+  CHECK_THAT(user_error_of([&] { parse("fixture: {max_frames: 300}"); }), Catch::Matchers::Contains("t_max"));
+  CHECK_THAT(user_error_of([&] { parse("fixture: {num_clip: 3}"); }), Catch::Matchers::Contains("did you mean 'num_clips'"));
   mc::FixtureConfig bad = small_config(3);
   bad.weight_locomotion = bad.weight_action = bad.weight_overlay = bad.weight_sequence = 0;
-  CHECK_THAT(user_error([&] { mc::generate_fixture(bad, skel()); }), Catch::Matchers::Contains("weight_"));
+  CHECK_THAT(user_error_of([&] { mc::generate_fixture(bad, skel()); }), Catch::Matchers::Contains("weight_"));
 }

@@ -13,6 +13,7 @@
 #include "core/h5_seal.h"
 #include "data/motion_set.h"
 #include "data_test_util.h"
+#include "test_util.h"
 
 using namespace mc;
 using namespace mc::test;
@@ -38,16 +39,6 @@ MotionSet full_motion_set() {
   m.stats = s;
   m.vocab = {"<pad>", "<unk>", "<sos>", "<eos>", "walks", "person", "ça"};
   return m;
-}
-
-template <class F>
-std::string user_error_of(F&& f) {
-  try {
-    f();
-  } catch (const UserError& e) {
-    return e.what();
-  }
-  return "<no UserError thrown>";
 }
 
 std::vector<char> file_bytes(const std::string& path) {
@@ -116,6 +107,17 @@ TEST_CASE("motion file round trip preserves every field", "[data][io]") {
     CHECK(b.labels.empty());
     CHECK_FALSE(b.stats.has_value());
     CHECK(b.vocab.empty());
+  }
+  SECTION("joint statistics without feature statistics (a converted dataset) round-trip") {
+    m.stats->feature_mean.clear();
+    m.stats->feature_std.clear();
+    m.stats->feature_layout = "none";
+    write_motion_file(dir.file("joint_stats.h5"), m);
+    MotionSet b = read_motion_file(dir.file("joint_stats.h5"));
+    REQUIRE(b.stats.has_value());
+    CHECK(b.stats->joint_std == m.stats->joint_std);
+    CHECK(b.stats->feature_mean.empty());
+    CHECK(b.stats->feature_layout == "none");
   }
   SECTION("an empty set round-trips") {
     MotionSet empty = random_motion_set({}, {"train"});
@@ -347,6 +349,11 @@ TEST_CASE("check rejects inconsistent in-memory sets", "[data][io]") {
   SECTION("stats with the wrong shape") {
     m.stats->joint_std = {1.0f, 1.0f};
     CHECK_THAT(user_error_of([&] { m.check("src"); }), Contains("stats/joint_std"));
+  }
+  SECTION("a vocabulary without the special tokens (converter 1.0's sorted word list)") {
+    m.vocab = {"person", "walks"};
+    CHECK_THAT(user_error_of([&] { m.check("src"); }),
+               Contains("src") && Contains("<pad>") && Contains("humanml3d_to_h5.py"));
   }
   SECTION("an empty caption list") {
     m.captions[2].clear();

@@ -6,6 +6,9 @@
 
 #include "core/error.h"
 #include "data/skeleton.h"
+#include "test_util.h"
+
+using mc::test::user_error_of;
 
 namespace {
 
@@ -23,20 +26,6 @@ Eigen::Matrix3d random_rotation(std::mt19937_64& gen) {
 
 std::string skeleton_yaml_with(const std::string& joints) {
   return "name: tiny\njoints:\n" + joints;
-}
-
-// The message of the mc::UserError `f` throws ("" if it throws nothing or
-// something else), for CHECK_THAT(..., Contains(...)).
-template <class F>
-std::string user_error(F&& f) {
-  try {
-    f();
-  } catch (const mc::UserError& e) {
-    return e.what();
-  } catch (...) {
-    return "<not a UserError>";
-  }
-  return "";
 }
 
 }  // namespace
@@ -121,19 +110,19 @@ TEST_CASE("skeleton YAML round-trips", "[skeleton]") {
 
 TEST_CASE("skeleton errors are user errors that name the problem", "[skeleton]") {
   const auto& s = skel();
-  CHECK_THAT(user_error([&] { s.joint_index("l_elbw"); }), Catch::Matchers::Contains("did you mean 'l_elbow'"));
-  CHECK_THAT(user_error([&] { s.role("toe"); }), Catch::Matchers::Contains("did you mean 'toes'"));
+  CHECK_THAT(user_error_of([&] { s.joint_index("l_elbw"); }), Catch::Matchers::Contains("did you mean 'l_elbow'"));
+  CHECK_THAT(user_error_of([&] { s.role("toe"); }), Catch::Matchers::Contains("did you mean 'toes'"));
   // A parent listed after its child.
-  CHECK_THAT(user_error([&] { mc::skeleton_from_yaml_text(skeleton_yaml_with(
+  CHECK_THAT(user_error_of([&] { mc::skeleton_from_yaml_text(skeleton_yaml_with(
                                                        "  - {name: root, parent: -1, direction: [0,0,0], length: 0}\n"
                                                        "  - {name: a, parent: 2, direction: [0,1,0], length: 1}\n"
                                                        "  - {name: b, parent: 0, direction: [0,1,0], length: 1}\n"),
                                                    "tiny.yaml"); }), Catch::Matchers::Contains("parents must precede"));
-  CHECK_THAT(user_error([&] { mc::skeleton_from_yaml_text(skeleton_yaml_with(
+  CHECK_THAT(user_error_of([&] { mc::skeleton_from_yaml_text(skeleton_yaml_with(
                                                        "  - {name: root, parent: -1, direction: [0,0,0], length: 0}\n"
                                                        "  - {name: a, parent: 0, direction: [0,1,0]}\n"),
                                                    "tiny.yaml"); }), Catch::Matchers::Contains("lacks key 'length'"));
-  CHECK_THAT(user_error([&] { mc::skeleton_from_yaml_text(skeleton_yaml_with(
+  CHECK_THAT(user_error_of([&] { mc::skeleton_from_yaml_text(skeleton_yaml_with(
                                                        "  - {name: root, parent: -1, direction: [0,0,0], length: 0}\n"
                                                        "  - {name: a, parent: 0, direction: [0,2,0], length: 1}\n"),
                                                    "tiny.yaml"); }), Catch::Matchers::Contains("not a unit vector"));

@@ -10,7 +10,7 @@
 #include "core/error.h"
 #include "eval/health.h"
 #include "eval/health_test_util.h"
-#include "samplers/flow_test_util.h"
+#include "models/flow_prior_test_util.h"
 #include "test_util.h"
 #include "train/train_job.h"
 
@@ -129,7 +129,7 @@ TEST_CASE("motionctl health: ground-truth self-check is clean, a random flow pri
           "[health][cli]") {
   HealthBed bed(120);  // 12 test, 12 val clips
   const fs::path prior = bed.dir.path / "prior";
-  write_prior_run(prior, "flow_prior", 196);
+  write_random_prior_run(prior, 196);
   // The run's own validation figures are reported (val_* only).
   std::ofstream(prior / "summary.csv") << "key,value\nsteps,10\nval_fm,0.4\nval_fm_t0.10,0.9\nval_fm_t0.90,0.1\n";
 

@@ -15,7 +15,7 @@
 #include "experiments/paired.h"
 #include "experiments/report.h"
 #include "samplers/flow_sampler.h"
-#include "samplers/flow_test_util.h"
+#include "models/flow_prior_test_util.h"
 #include "test_util.h"
 
 using namespace mc;
@@ -250,7 +250,7 @@ TEST_CASE("common random numbers: every flow step rule starts from the same init
   // and caption, and the same as the seed's draw (DNO and the ControlNet draw the same
   // torch::randn({N, T, J, 3}) from that seed).
   TempDir t("paired_noise");
-  write_prior_run(t.path);
+  write_random_prior_run(t.path);
   FlowPrior prior = FlowPrior::load(t.path.string());
   struct Recorder : FlowStepper {
     torch::Tensor x0;

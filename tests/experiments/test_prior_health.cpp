@@ -9,7 +9,7 @@
 #include "eval/health_test_util.h"
 #include "experiments/prior_health.h"
 #include "experiments/report.h"
-#include "samplers/flow_test_util.h"
+#include "models/flow_prior_test_util.h"
 #include "test_util.h"
 
 using namespace mc;
@@ -23,7 +23,7 @@ TEST_CASE("reproduce's prior health: table tops name the verdict, health.md/json
   const std::string evaluator = (dir.path / "evaluator.yaml").string();
   write_tiny_evaluator_config(evaluator, fx, runs);
   const fs::path prior = dir.path / "prior", adapter = dir.path / "adapter";
-  write_prior_run(prior, "flow_prior", 196);  // random weights: bones are not kept
+  write_random_prior_run(prior, 196);  // random weights: bones are not kept
   fs::create_directories(adapter);
   std::ofstream(adapter / "config.yaml") << "model:\n  type: anchorkv_adapter\n";  // not covered: left out
 

@@ -301,3 +301,35 @@ TEST_CASE("profile.trained_configs: malformed entries and missing files are exit
   CHECK(r2.exit_code == 2);
   CHECK(r2.output.find("from=to") != std::string::npos);
 }
+
+TEST_CASE("table.derived: a derived column is declared in the spec, malformed entries are exit 2 naming the spec",
+          "[experiments]") {
+  // Table VII's cost column is declared, not recognised by its name.
+  mc::TableSpec t7 = mc::load_table_spec(std::string(MOTIONCTL_SOURCE_DIR) + "/experiments/anchorroute/table7.yaml");
+  REQUIRE(t7.table.derived == std::vector<std::string>{"relative_cost=time_per_sample/rs0"});
+  mc::DerivedColumn d = mc::parse_derived_column(t7.table.derived[0], "table7");
+  CHECK(d.column == "relative_cost");
+  CHECK(d.metric == "time_per_sample");
+  CHECK(d.base_row == "rs0");
+
+  TempDir dir("derived");
+  auto spec_with = [&](const std::string& derived) {
+    const fs::path f = dir.path / "t.yaml";
+    std::ofstream(f) << "table:\n  id: test/derived\n  protocol: experiments/protocols/anchors_all.yaml\n"
+                        "  columns: [time_per_sample, cost]\n  derived: " << derived << "\n"
+                     << "rows:\n  - {id: base, generator: experiments/generators/anchorroute.yaml}\n"
+                        "  - {id: other, generator: experiments/generators/anchorroute.yaml}\n";
+    return f.string();
+  };
+  CHECK(mc::load_table_spec(spec_with("[cost=time_per_sample/base]")).table.derived.size() == 1);
+  for (const auto& [entry, fragment] : std::vector<std::pair<std::string, std::string>>{
+           {"[cost=time_per_sample]", "not column=metric/row"},
+           {"[cost]", "not column=metric/row"},
+           {"[nocolumn=time_per_sample/base]", "which table.columns does not list"},
+           {"[cost=time_per_sample/nosuchrow]", "not a row of the table"}}) {
+    INFO(entry);
+    const std::string msg = user_error_of([&] { mc::load_table_spec(spec_with(entry)); });
+    CHECK(msg.find(fragment) != std::string::npos);
+    CHECK(msg.find("t.yaml") != std::string::npos);
+  }
+}

@@ -9,7 +9,7 @@
 #include "core/error.h"
 #include "models/anchor_adapters.h"
 #include "models/vq_tokenizer.h"
-#include "samplers/anchor_loss.h"
+#include "control/anchor_loss.h"
 
 using namespace mc;
 
@@ -117,6 +117,14 @@ TEST_CASE("adapter features: one block per family plus a family one-hot", "[anch
   CHECK(fb.narrow(1, 0, 19).abs().max().item<float>() == 0.0f);
   CHECK(fb.narrow(1, 19, 66).abs().max().item<float>() > 0.0f);
   CHECK(torch::equal(fb.narrow(1, 85, 3)[5], torch::tensor({0.0f, 0.0f, 1.0f})));
+  // delta_scale multiplies exactly the Delta p channels [2 d_f, 3 d_f) of the set's block.
+  for (double scale : {0.5, 20.0}) {
+    auto g = adapter_features(root, bj, scale);
+    CHECK(torch::equal(g.narrow(1, 0, 6), f.narrow(1, 0, 6)));
+    CHECK(torch::allclose(g.narrow(1, 6, 3), f.narrow(1, 6, 3) * scale));
+    CHECK(torch::equal(g.narrow(1, 9, 88 - 9), f.narrow(1, 9, 88 - 9)));
+  }
+  CHECK(f.narrow(1, 6, 3).abs().max().item<float>() > 0.0f);  // the channel the check scales is live
   // A body-point anchor on a joint outside the layout is a clear error.
   auto other = draw_anchor_set(AnchorFamily::body_point, 2, motion.data(), 40, 22, rng, {7});
   CHECK_THROWS_AS(adapter_features(other, bj), UserError);

@@ -17,46 +17,19 @@
 #include "data/skeleton.h"
 #include "models/flow_controlnet.h"
 #include "samplers/controlnet_generator.h"
-#include "samplers/flow_test_prior.h"
+#include "models/flow_prior_test_util.h"
 #include "samplers/motion_generator.h"
 #include "test_util.h"
-#include "train/motion_dataset.h"
+#include "train/dependencies.h"
+#include "models/motion_dataset.h"
 #include "train/train_job.h"
-#include "train/trainable.h"
+#include "models/trainable.h"
+#include "samplers/generator_test_util.h"
 
 using namespace mc;
 using namespace mc::test;
 
 namespace {
-
-template <class F>
-std::string user_error_of(F&& f) {
-  try {
-    f();
-  } catch (const UserError& e) {
-    return e.what();
-  }
-  return "";
-}
-
-std::vector<float> random_clip(int T, unsigned seed) {
-  std::mt19937 rng(seed);
-  std::uniform_real_distribution<float> u(-1.0f, 1.0f);
-  std::vector<float> v(static_cast<size_t>(T) * 22 * 3);
-  for (auto& x : v) x = u(rng);
-  return v;
-}
-
-ControlTask make_task(const std::string& id, int T, const std::string& spec_yaml, unsigned seed) {
-  ControlTask t;
-  t.id = id;
-  t.clip_id = id;
-  t.caption = "a person walks forward";
-  t.length = T;
-  t.spec = parse_constraint_spec_yaml(spec_yaml, id + ".yaml");
-  t.source = random_clip(T, seed);
-  return t;
-}
 
 // Random clips of the given lengths on the HumanML3D skeleton (world metres).
 MotionSet random_set(const std::vector<int>& lengths, unsigned seed) {
@@ -83,16 +56,11 @@ MotionSet random_set(const std::vector<int>& lengths, unsigned seed) {
   return m;
 }
 
-struct GeneratorJob : Config {
-  Component generator{"generator"};
-  void visit(FieldVisitor& v) override { v("generator", generator, "the generator under test"); }
-};
-
 }  // namespace
 
 TEST_CASE("ControlNet: zero-initialised branch gives exactly the base's velocity", "[controlnet]") {
   TempDir dir("cn_zero");
-  write_random_prior_run(dir.path);
+  write_random_prior_run(dir.path, 40, "flow_prior", kPriorWordsWithNumbers);
   FlowControlNet net = FlowControlNet::around(FlowPrior::load(dir.path.string()));
   const FlowPrior& base = net.base();
   torch::manual_seed(2);
@@ -166,7 +134,7 @@ TEST_CASE("ControlNet training masks: one listed joint, 1..length frames, valid 
 
 TEST_CASE("ControlNet trainer: base frozen, branch learns, losses finite", "[controlnet]") {
   TempDir dir("cn_train");
-  write_random_prior_run(dir.path / "base");
+  write_random_prior_run(dir.path / "base", 40, "flow_prior", kPriorWordsWithNumbers);
   auto data = std::make_shared<MotionDataset>(random_set({40, 30, 36, 40, 22, 40, 28, 35}, 3), "random");
   TrainJobConfig job;
   parse_config(config_from_string(fmt::format("model:\n  type: flow_controlnet\n  base:\n    run_dir: {}\n",
@@ -249,7 +217,7 @@ TEST_CASE("ControlNet trainer: base frozen, branch learns, losses finite", "[con
 
 TEST_CASE("ControlNet control loss: on the clean estimate x0 + v, it does not vanish near t = 1", "[controlnet]") {
   TempDir dir("cn_loss_t");
-  write_random_prior_run(dir.path);
+  write_random_prior_run(dir.path, 40, "flow_prior", kPriorWordsWithNumbers);
   FlowControlNet net = FlowControlNet::around(FlowPrior::load(dir.path.string()));
   torch::manual_seed(3);
   const int64_t B = 4, T = 30;
@@ -348,6 +316,7 @@ TEST_CASE("ControlNet training: a short real run lowers the validation control l
   TrainResult r = run_train("configs/prior/flow_controlnet_tiny.yaml", ov);
   auto job = load_job<TrainJobConfig>("configs/prior/flow_controlnet_tiny.yaml", ov);
   TrainContext ctx{MotionDataset::load(data), torch::kCPU, &job, 0};
+  resolve_dependencies(job.model, nullptr);  // as train() does: the base, found
   auto step0 = make_trainable(job.model, ctx)->evaluate();
   INFO("val_ctrl " << step0["val_ctrl"] << " -> " << r.summary["val_ctrl"] << "; val_fm " << step0["val_fm"] << " -> "
                    << r.summary["val_fm"]);
@@ -358,7 +327,7 @@ TEST_CASE("ControlNet training: a short real run lowers the validation control l
 
 TEST_CASE("ControlNet control targets: joint-position selections only (keyframe, trajectory, upper-body edit)", "[controlnet]") {
   TempDir dir("cn_targets");
-  write_random_prior_run(dir.path);
+  write_random_prior_run(dir.path, 40, "flow_prior", kPriorWordsWithNumbers);
   FlowPrior base = FlowPrior::load(dir.path.string());
   std::vector<ControlTask> tasks = {
       make_task("k", 20, "- {type: keyframe, joints: [0, l_wrist], frames: [3, 9], axes: xz, from_source: true}\n", 1),
@@ -427,12 +396,12 @@ TEST_CASE("ControlNet end to end: flow_tiny base on demand, train, sample throug
     for (size_t i = 0; i < pa.size(); ++i) CHECK(torch::equal(pa[i], pb[i]));
   }
 
-  GeneratorJob job;
+  GeneratorFile job;
   parse_config(config_from_string(fmt::format("generator:\n  type: flow_controlnet\n  controlnet:\n    run_dir: {}\n"
                                               "  steps: 10\n",
                                               cn_dir.string())),
                job);
-  auto gen = as_generator(job.generator).make(GeneratorContext{});
+  auto gen = build_generator(job.generator);
   CHECK(gen->describe().find("ControlNet") != std::string::npos);
   std::vector<ControlTask> tasks = {
       make_task("a", 60, "- {type: trajectory, joints: [pelvis], from_source: true}\n", 5),

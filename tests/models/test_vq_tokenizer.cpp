@@ -10,7 +10,7 @@
 #include "data/features.h"
 #include "models/vq_tokenizer.h"
 #include "test_util.h"
-#include "train/motion_dataset.h"
+#include "models/motion_dataset.h"
 #include "train/trainer.h"
 
 using namespace mc;

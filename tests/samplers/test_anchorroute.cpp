@@ -13,12 +13,13 @@
 #include "core/error.h"
 #include "eval/observation_errors.h"
 #include "models/anchor_adapters.h"
-#include "samplers/anchor_loss.h"
+#include "control/anchor_loss.h"
 #include "samplers/motion_generator.h"
 #include "samplers/tmd_sampler.h"
 #include "test_util.h"
-#include "train/motion_dataset.h"
+#include "models/motion_dataset.h"
 #include "train/train_job.h"
+#include "samplers/generator_test_util.h"
 
 using namespace mc;
 using namespace mc::test;
@@ -34,9 +35,9 @@ std::vector<ControlTask> protocol_tasks(const std::string& type, const std::stri
 }
 
 std::unique_ptr<MotionGenerator> make_generator(const std::string& yaml) {
-  auto cfg = make_component_config("generator", "anchorroute");
-  parse_config(config_from_string(yaml), *cfg);
-  return dynamic_cast<GeneratorConfig&>(*cfg).make({});
+  Component c("generator", "anchorroute");
+  parse_config(config_from_string(yaml), *c.cfg);
+  return build_generator(c);
 }
 
 double control_error(const GeneratedMotions& g, const std::vector<ControlTask>& tasks, const Skeleton& sk) {

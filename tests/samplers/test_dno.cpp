@@ -8,52 +8,15 @@
 #include "control/control_task.h"
 #include "core/error.h"
 #include "samplers/dno.h"
-#include "samplers/flow_test_prior.h"
+#include "models/flow_prior_test_util.h"
 #include "samplers/motion_generator.h"
 #include "samplers/task_observation.h"
 #include "test_util.h"
+#include "samplers/generator_test_util.h"
 
 using namespace mc;
 using namespace mc::test;
 
-namespace {
-
-std::vector<float> random_clip(int T, unsigned seed, float amp = 1.0f) {
-  std::mt19937 rng(seed);
-  std::uniform_real_distribution<float> u(-amp, amp);
-  std::vector<float> v(static_cast<size_t>(T) * 22 * 3);
-  for (auto& x : v) x = u(rng);
-  return v;
-}
-
-ControlTask make_task(const std::string& id, int T, const std::string& spec_yaml, unsigned seed,
-                      const std::string& caption = "a person walks forward") {
-  ControlTask t;
-  t.id = id;
-  t.clip_id = id;
-  t.caption = caption;
-  t.length = T;
-  if (!spec_yaml.empty()) t.spec = parse_constraint_spec_yaml(spec_yaml, id + ".yaml");
-  t.source = random_clip(T, seed);
-  return t;
-}
-
-struct GeneratorJob : Config {
-  Component generator{"generator"};
-  void visit(FieldVisitor& v) override { v("generator", generator, "the generator under test"); }
-};
-
-template <class F>
-std::string user_error_of(F&& f) {
-  try {
-    f();
-  } catch (const UserError& e) {
-    return e.what();
-  }
-  return "";
-}
-
-}  // namespace
 
 TEST_CASE("A x through index tensors equals the Eigen sparse product, per sample", "[dno]") {
   std::vector<ControlTask> tasks = {
@@ -151,7 +114,7 @@ TEST_CASE("DNO decorrelation penalty: near zero for white noise, large for smoot
 
 TEST_CASE("DNO reduces the constraint residual on a random-weight prior, deterministic in the seed", "[dno]") {
   TempDir dir("dno");
-  write_random_prior_run(dir.path);
+  write_random_prior_run(dir.path, 40, "flow_prior", kPriorWordsWithNumbers);
   FlowPrior prior = FlowPrior::load(dir.path.string());
   std::vector<ControlTask> tasks = {
       make_task("k", 30, "- {type: keyframe, joints: [0], frames: [3, 15, 27], from_source: true}\n", 11,
@@ -221,13 +184,13 @@ TEST_CASE("DNO reduces the constraint residual on a random-weight prior, determi
 
 TEST_CASE("generator dno: built from config, one world motion per task, clear task errors", "[dno]") {
   TempDir dir("dno_gen");
-  write_random_prior_run(dir.path);
-  GeneratorJob job;
+  write_random_prior_run(dir.path, 40, "flow_prior", kPriorWordsWithNumbers);
+  GeneratorFile job;
   parse_config(config_from_string(fmt::format("generator:\n  type: dno\n  prior:\n    run_dir: {}\n"
                                               "  opt_steps: 6\n  ode_steps: 4\n  warmup: 2\n",
                                               dir.path.string())),
                job);
-  auto gen = as_generator(job.generator).make(GeneratorContext{});
+  auto gen = build_generator(job.generator);
   CHECK(gen->describe().find("DNO") != std::string::npos);
   std::vector<ControlTask> tasks = {
       make_task("p", 20, "- {type: keyframe, joints: [0], frames: [2, 9], from_source: true}\n", 4),
@@ -246,7 +209,7 @@ TEST_CASE("generator dno: built from config, one world motion per task, clear ta
   CHECK(e.find("task 'q'") != std::string::npos);
   CHECK(e.find("source clip") != std::string::npos);
 
-  GeneratorJob bad;
+  GeneratorFile bad;
   std::string pe = user_error_of([&] { parse_config(config_from_string("generator:\n  type: dno\n  opt_steps: 3\n"), bad); });
   CHECK(pe.find("prior.run_dir") != std::string::npos);
 }

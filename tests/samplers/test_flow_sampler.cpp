@@ -13,23 +13,13 @@
 #include "data/skeleton.h"
 #include "samplers/flow_sampler.h"
 #include "test_util.h"
-#include "samplers/flow_test_util.h"
+#include "models/flow_prior_test_util.h"
 #include "train/trainer.h"
 
 using namespace mc;
 using namespace mc::test;
 
 namespace {
-
-template <class F>
-std::string user_error_of(F&& f) {
-  try {
-    f();
-  } catch (const UserError& e) {
-    return e.what();
-  }
-  return "";
-}
 
 // Records what the sampler passes to each step, then takes the Euler step.
 struct RecordingStepper : FlowStepper {
@@ -61,13 +51,13 @@ TEST_CASE("FlowPrior::load: clear errors for missing, incomplete or foreign runs
   fs::create_directories(t.path / "empty");
   auto incomplete = user_error_of([&] { FlowPrior::load((t.path / "empty").string()); });
   CHECK(incomplete.find("config.yaml' is missing") != std::string::npos);
-  write_prior_run(t.path / "ok");
+  write_random_prior_run(t.path / "ok");
   fs::remove(t.path / "ok" / "checkpoints" / "final.pt");
   CHECK(user_error_of([&] { FlowPrior::load((t.path / "ok").string()); }).find("final.pt") != std::string::npos);
-  write_prior_run(t.path / "ae", "motion_autoencoder");
+  write_random_prior_run(t.path / "ae", 40, "motion_autoencoder");
   CHECK(user_error_of([&] { FlowPrior::load((t.path / "ae").string()); }).find("not a flow prior") !=
         std::string::npos);
-  write_prior_run(t.path / "good");
+  write_random_prior_run(t.path / "good");
   FlowPrior p = FlowPrior::load((t.path / "good").string());
   CHECK(p.t_max() == 40);
   CHECK(p.num_joints() == 22);
@@ -77,7 +67,7 @@ TEST_CASE("FlowPrior::load: clear errors for missing, incomplete or foreign runs
 
 TEST_CASE("classifier-free guidance: scale 1 is the conditional, 0 the unconditional velocity", "[flow]") {
   TempDir t("prior_cfg");
-  write_prior_run(t.path);
+  write_random_prior_run(t.path);
   FlowPrior p = FlowPrior::load(t.path.string());
   torch::manual_seed(6);
   auto x = torch::randn({3, 20, 22, 3});
@@ -99,7 +89,7 @@ TEST_CASE("classifier-free guidance: scale 1 is the conditional, 0 the unconditi
 
 TEST_CASE("Euler sampler: time grid, step hook, seeding and lengths", "[flow]") {
   TempDir t("prior_euler");
-  write_prior_run(t.path);
+  write_random_prior_run(t.path);
   FlowPrior p = FlowPrior::load(t.path.string());
   FlowSamplerConfig cfg;
   CHECK(cfg.steps == 99);  // reference-facts §3: 100 grid points
@@ -136,7 +126,7 @@ TEST_CASE("Euler sampler: time grid, step hook, seeding and lengths", "[flow]") 
 
 TEST_CASE("non-finite network output is a UserError, never a file", "[flow]") {
   TempDir t("prior_nan");
-  write_prior_run(t.path);
+  write_random_prior_run(t.path);
   FlowPrior p = FlowPrior::load(t.path.string());
   {
     torch::NoGradGuard ng;

@@ -13,27 +13,20 @@
 #include "control/linear_observation.h"
 #include "data/fixture/fixture.h"
 #include "data/skeleton.h"
-#include "samplers/flow_test_util.h"
+#include "models/flow_prior_test_util.h"
 #include "samplers/motion_generator.h"
 #include "train/pretrained.h"
 #include "control/control_test_util.h"
 #include "data/data_test_util.h"
 #include "test_util.h"
+#include "samplers/generator_test_util.h"
 
 using namespace mc;
 using namespace mc::test;
 
 namespace {
 
-struct GeneratorFile : Config {
-  Component generator{"generator"};
-  void visit(FieldVisitor& v) override { v("generator", generator, "generator"); }
-};
-std::unique_ptr<MotionGenerator> generator_of(const ConfigSource& src) {
-  GeneratorFile f;
-  parse_config(src, f);
-  return as_generator(f.generator).make(GeneratorContext{});
-}
+std::unique_ptr<MotionGenerator> generator_of(const ConfigSource& src) { return build_generator(src); }
 
 struct ProtocolFile : Config {
   Component protocol{"protocol"};
@@ -110,7 +103,7 @@ TEST_CASE("guidance beats the unconstrained prior's control error at every OmniC
 
 TEST_CASE("guidance: the residual clip keeps an oversized step from overshooting a single keyframe", "[samplers]") {
   TempDir dir("guidance_clip");
-  write_prior_run(dir.path / "prior");
+  write_random_prior_run(dir.path / "prior");
   const Skeleton& sk = humanml3d_skeleton();
   std::mt19937_64 rng(21);
   std::vector<ControlTask> tasks;

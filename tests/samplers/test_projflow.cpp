@@ -10,29 +10,21 @@
 #include "control/projection_solver.h"
 #include "core/error.h"
 #include "data/skeleton.h"
-#include "samplers/flow_test_util.h"
+#include "models/flow_prior_test_util.h"
 #include "samplers/motion_generator.h"
 #include "samplers/projflow.h"
 #include "samplers/task_observation.h"
 #include "control/control_test_util.h"
 #include "data/data_test_util.h"
 #include "test_util.h"
+#include "samplers/generator_test_util.h"
 
 using namespace mc;
 using namespace mc::test;
 
 namespace {
 
-// A `generator:` component parsed from YAML text.
-struct GeneratorFile : Config {
-  Component generator{"generator"};
-  void visit(FieldVisitor& v) override { v("generator", generator, "generator"); }
-};
-std::unique_ptr<MotionGenerator> make_generator(const std::string& yaml) {
-  GeneratorFile f;
-  parse_config(config_from_string(yaml), f);
-  return as_generator(f.generator).make(GeneratorContext{});
-}
+std::unique_ptr<MotionGenerator> make_generator(const std::string& yaml) { return build_generator(yaml); }
 
 // Largest |A x - y| over the hard rows of `spec` compiled for `motion` (world units).
 double hard_residual(const ConstraintSpec& spec, int T, const std::vector<float>& source, const float* motion) {
@@ -166,7 +158,7 @@ TEST_CASE("pseudo-observation trust falls where the clean estimate curves", "[pr
 
 TEST_CASE("ProjFlow: hard constraints of every type hold exactly through the sampler", "[projflow]") {
   TempDir dir("projflow");
-  write_prior_run(dir.path / "prior");
+  write_random_prior_run(dir.path / "prior");
   const Skeleton& sk = humanml3d_skeleton();
   const int T = 24;
   std::mt19937_64 rng(11);
@@ -205,7 +197,7 @@ TEST_CASE("ProjFlow: hard constraints of every type hold exactly through the sam
 
 TEST_CASE("ProjFlow: soft keyframes approach their targets as the variance shrinks, seeds", "[projflow]") {
   TempDir dir("projflow_soft");
-  write_prior_run(dir.path / "prior");
+  write_random_prior_run(dir.path / "prior");
   const Skeleton& sk = humanml3d_skeleton();
   std::mt19937_64 rng(5);
   ControlTask t;
@@ -246,7 +238,7 @@ TEST_CASE("ProjFlow: soft keyframes approach their targets as the variance shrin
 
 TEST_CASE("reconstruction guidance pulls samples toward the constraints, imputation is exact", "[projflow]") {
   TempDir dir("guidance");
-  write_prior_run(dir.path / "prior");
+  write_random_prior_run(dir.path / "prior");
   const Skeleton& sk = humanml3d_skeleton();
   std::mt19937_64 rng(8);
   std::vector<ControlTask> tasks;
@@ -342,7 +334,7 @@ TEST_CASE("spatial protocols: OmniControl densities, lifting cameras, applicatio
 TEST_CASE("ProjFlow with inequality and direction items: rows hold through the sampler, warm = cold start",
           "[projflow][inequality]") {
   TempDir dir("projflow_ineq");
-  write_prior_run(dir.path / "prior");
+  write_random_prior_run(dir.path / "prior");
   const Skeleton& sk = humanml3d_skeleton();
   const int T = 24;
   std::mt19937_64 rng(12);

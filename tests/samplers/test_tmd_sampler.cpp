@@ -26,16 +26,6 @@ torch::Tensor random_distance(int64_t K, int64_t D, uint64_t seed) {
   return d;
 }
 
-template <class F>
-std::string user_error_of(F&& f) {
-  try {
-    f();
-  } catch (const UserError& e) {
-    return e.what();
-  }
-  return "";
-}
-
 }  // namespace
 
 TEST_CASE("TMD rates: zero for tokens no closer to x1_hat than x_t, u(x_t) = 0, eq. (21) values", "[tmd]") {

@@ -2,8 +2,10 @@
 tables-only file yields fewer (exit 0); bad input exits 2 naming the file; the statistics and the
 camera used by the figures are checked against hand-computed numbers."""
 
+import json
 import math
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -13,7 +15,9 @@ import unittest
 try:
     import numpy as np
     import h5py
-    import matplotlib  # noqa: F401
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.image as plt_image
 except ImportError as e:  # wrong interpreter: tell ctest "skipped", not "failed"
     print(f"skipping: {e} (run with /usr/bin/python3)")
     sys.exit(77)
@@ -119,6 +123,7 @@ def write_tables(f, rng):
     table("projflow/table1", "Spatial control", list(ctrl),
           [("pelvis/projflow", "ACMDM-S-PS22+ProjFlow", ctrl),
            ("pelvis/dno", "ACMDM-S-PS22+DNO ($\\lambda$ = 1)", ctrl),  # '$' must stay literal
+           ("pelvis/guidance", "Guidance (diverged)", ctrl),
            ("all/projflow", "ProjFlow (all joints)", ctrl)])
     table("projflow/table2", "2D-to-3D lifting", ["fid", "mpjpe_2d"],
           [("average/projflow", "ProjFlow (average)", {"fid": reps(0.5, 0.05), "mpjpe_2d": reps(0.0, 0.0)})])
@@ -156,11 +161,18 @@ def write_examples(f, rng):
     def drift(clip):  # a generated motion that misses the target a little
         return clip + np.array([0.05, 0.0, -0.04]) * np.linspace(0, 1, len(clip))[:, None, None]
 
+    def diverged(clip):  # a baseline that blew up: joints tens of metres apart, growing over time
+        grow = np.linspace(0.0, 1.0, len(clip))[:, None, None]
+        return clip + grow * np.array([3.0, 25.0, -30.0]) * (np.arange(22)[None, :, None] % 3)
+
     example("projflow/table1", "pelvis/projflow", lambda c: c, [0])
     example("projflow/table1", "pelvis/dno", drift, [0])
+    example("projflow/table1", "pelvis/guidance", diverged, [0])
     example("projflow/table1", "all/projflow", lambda c: c, [0, 10, 20])
     example("projflow/table2", "average/projflow", drift, [], camera=True)
     example("anchorroute/table5", "root3d/rs200", lambda c: c + 0.02 * rng.standard_normal(c.shape), [0])
+    for i in range(MANY_ROWS):  # more rows than one column of strips holds: they wrap into columns
+        example("anchorroute/table6", f"body/v{i:02d}", lambda c: c, [20])
 
 
 def write_rest(f):
@@ -196,9 +208,10 @@ def build_results(path, examples=True, training=True):
             write_rest(f)
 
 
+MANY_ROWS = 11
 ALL_PNGS = sorted(["frontier_body.png", "frontier_planar.png", "frontier_root3d.png", "lifting_example.png",
-            "strips_anchorroute_table5.png", "strips_projflow_table1.png", "strips_projflow_table2.png",
-            "trajectory_overlay.png", "training_curves.png"])
+            "strips_anchorroute_table5.png", "strips_anchorroute_table6.png", "strips_projflow_table1.png",
+            "strips_projflow_table2.png", "trajectory_overlay.png", "training_curves.png"])
 
 
 class Figures(unittest.TestCase):
@@ -221,15 +234,52 @@ class Figures(unittest.TestCase):
 
     def test_full_file_draws_every_figure(self):
         out = os.path.join(self.tmp, "full")
-        r = run_figures(self.full, "--out", out)
+        manifest = os.path.join(self.tmp, "manifest.json")
+        r = run_figures(self.full, "--out", out, "--manifest", manifest)
         self.assertEqual(r.returncode, 0, r.stderr)
         self.assertEqual(sorted(os.listdir(out)), ALL_PNGS)
         self.assertEqual(sorted(r.stdout.split()), [os.path.join(out, n) for n in ALL_PNGS])
         for name in ALL_PNGS:
             self.assert_png(os.path.join(out, name))
         self.assertNotIn("skipped", r.stderr)
+        with open(manifest) as f:
+            panels = json.load(f)
+        self.assertEqual(sorted(panels), ALL_PNGS)
+        for name in ALL_PNGS:
+            self.assert_openable_and_full(os.path.join(out, name), panels[name])
+        # The diverged guidance row: its own zoom per panel in the strips, its own scale in the overlay;
+        # every other row keeps one scale.
+        strips = panels["strips_projflow_table1.png"]["panels"]
+        zoomed = [p["title"] for p in strips if re.search(r", [0-9.]+ m$", p["title"])]
+        self.assertTrue(zoomed, "diverged row has no per-panel zoom")
+        self.assertLess(len(zoomed), len(strips) // 2)
+        overlay = [p["title"] for p in panels["trajectory_overlay.png"]["panels"]]
+        self.assertEqual(sum("diverged" in t for t in overlay), 1, overlay)
+        # Eleven rows wrap into two columns of strips instead of one tall figure.
+        w, h = panels["strips_anchorroute_table6.png"]["size"]
+        self.assertGreater(w, 1.5 * panels["strips_anchorroute_table5.png"]["size"][0])
+        self.assertLess(h, 8 * 300)
         if os.environ.get("KEEP_FIGURES"):
             print("figures kept in", out)
+
+    def assert_openable_and_full(self, path, entry):
+        """Bounded, the size the manifest says, and every panel shows something: its subject (pose,
+        path or curve) lies in view, spans a tenth of the panel, and left ink in the PNG there."""
+        img = plt_image.imread(path)
+        h, w = img.shape[:2]
+        self.assertEqual([w, h], entry["size"], path)
+        self.assertLessEqual(max(w, h), 4000, path)
+        self.assertTrue(entry["panels"], path)
+        for p in entry["panels"]:
+            where = f"{os.path.basename(path)} panel '{p['title']}' at {[round(v) for v in p['box']]}"
+            self.assertIsNotNone(p["subject"], f"{where}: nothing drawn in view")
+            bx0, by0, bx1, by1 = p["box"]
+            sx0, sy0, sx1, sy1 = p["subject"]
+            self.assertGreater(max((sx1 - sx0) / (bx1 - bx0), (sy1 - sy0) / (by1 - by0)), 0.1,
+                               f"{where}: what it shows is a speck ({sx1 - sx0:.0f} x {sy1 - sy0:.0f} px)")
+            region = img[int(sy0):int(math.ceil(sy1)) + 1, int(sx0):int(math.ceil(sx1)) + 1, :3]
+            ink = (np.abs(region - 1.0).max(axis=-1) > 0.2).sum()
+            self.assertGreater(ink, 10, f"{where}: no ink where its subject is")
 
     def test_tables_only_file(self):
         path = os.path.join(self.tmp, "tables_only.h5")
@@ -311,6 +361,43 @@ class Helpers(unittest.TestCase):
         self.assertEqual(figures.paper_frontier(tables, "body"), [(0, 0.11, 0.066), (200, 0.024, 0.099)])
         self.assertEqual(figures.paper_frontier(tables, "root3d"), [(200, 0.04, 0.185)])
         self.assertEqual(figures.paper_frontier(tables, "planar"), [])
+
+
+class Layout(unittest.TestCase):
+    def example(self, target_paths, controlled):
+        """An Example whose sample k's ground-truth root follows target_paths[k] ([T, 2] xz)."""
+        k, t = len(target_paths), len(target_paths[0])
+        target = np.zeros((k, t, 22, 3))
+        for i, path in enumerate(target_paths):
+            target[i, :, :, 0] = path[:, None, 0]
+            target[i, :, :, 2] = path[:, None, 1]
+            target[i, :, :, 1] = np.linspace(0, 1.7, 22)[None, :]
+        ctrl = np.zeros((k, t, 22, 3), bool)
+        for i in controlled:
+            ctrl[i, 3, 0] = True
+        return figures.Example("r", "r", target.copy(), np.full(k, t), target, ctrl, None, None, [], [])
+
+    def test_informative_sample_prefers_controlled_then_moving(self):
+        still = np.zeros((20, 2))
+        walk = np.stack([np.zeros(20), np.linspace(0, 3, 20)], axis=1)
+        self.assertEqual(figures.informative_sample([self.example([still, walk, still], [0, 1, 2])]), 1)
+        self.assertEqual(figures.informative_sample([self.example([still, walk], [0])]), 0)
+        self.assertEqual(figures.informative_sample([self.example([still, still], [])]), 0)
+
+    def test_diverged_split(self):
+        self.assertEqual(figures.split_diverged([1.9, 2.0, 2.1, 40.0]), {3})
+        self.assertEqual(figures.split_diverged([1.9, 2.0, 5.5]), set())
+
+    def test_strip_pages_stay_within_4000_px(self):
+        for n in (1, 5, 8, 9, 30, 60, 200):
+            pages = figures.strip_pages(n, 9.4, 2.9, 0.75, 0.25)
+            self.assertEqual(sum(p[1] for p in pages), n)
+            for first, count, cols, per_col in pages:
+                self.assertLessEqual((cols * 9.4 + 0.1) * figures.DPI, 4000)
+                self.assertLessEqual((0.75 + per_col * 2.9 + 0.25) * figures.DPI, 4000)
+                self.assertLessEqual(count, cols * per_col)
+        self.assertEqual(figures.strip_pages(8, 9.4, 2.9, 0.75, 0.25), [(0, 8, 1, 8)])
+        self.assertEqual(len(figures.strip_pages(200, 9.4, 2.9, 0.75, 0.25)), 4)
 
 
 class BadInput(unittest.TestCase):

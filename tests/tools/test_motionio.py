@@ -43,7 +43,7 @@ class RoundTrip(unittest.TestCase):
         a, b = os.path.join(self.tmp, "a.h5"), os.path.join(self.tmp, "b.h5")
         stats = {"joint_mean": [0.1, 0.2, 0.3], "joint_std": [1, 2, 3], "feature_mean": np.arange(5),
                  "feature_std": np.ones(5), "feature_layout": "mc67"}
-        motionio.write_motion(a, **d, labels=["p", "q", "r"], stats=stats, vocab=["au", "café"], fps=30.0,
+        motionio.write_motion(a, **d, labels=["p", "q", "r"], stats=stats, vocab=list(motionio.VOCAB_SPECIALS) + ["au", "café"], fps=30.0,
                               provenance={"generator": "g", "version": "v", "seed": 5, "config": "c: 1",
                                           "created": "2024-01-01T00:00:00Z"})
         clips = [d["joints"][i, :d["lengths"][i]] for i in range(3)]
@@ -59,7 +59,7 @@ class RoundTrip(unittest.TestCase):
         self.assertEqual(ma.fps, 30.0)
         self.assertEqual(ma.labels, ["p", "q", "r"])
         self.assertIsNone(mb.labels)
-        self.assertEqual(ma.vocab, ["au", "café"])
+        self.assertEqual(ma.vocab, list(motionio.VOCAB_SPECIALS) + ["au", "café"])
         self.assertEqual(ma.stats["feature_layout"], "mc67")
         np.testing.assert_array_equal(ma.stats["feature_mean"], np.arange(5, dtype=np.float32))
         self.assertEqual(ma.provenance["seed"], 5)
@@ -69,7 +69,7 @@ class RoundTrip(unittest.TestCase):
 
     def test_documented_layout(self):
         path = os.path.join(self.tmp, "layout.h5")
-        motionio.write_motion(path, **sample_data(self.rng), vocab=["w"],
+        motionio.write_motion(path, **sample_data(self.rng), vocab=list(motionio.VOCAB_SPECIALS) + ["w"],
                               stats={"joint_mean": [0, 0, 0], "joint_std": [1, 1, 1]})
         with h5py.File(path, "r") as f:
             self.assertEqual(f.attrs["format"], "motionctl.motion")

@@ -12,7 +12,9 @@ import unittest
 try:
     import numpy as np
     import h5py
-    import matplotlib  # noqa: F401
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.image as plt_image
 except ImportError as e:  # wrong interpreter: tell ctest "skipped", not "failed"
     print(f"skipping: {e} (run with /usr/bin/python3)")
     sys.exit(77)
@@ -63,7 +65,7 @@ class RenderAndStats(unittest.TestCase):
         motionio.write_motion(
             cls.file, joints, lengths, ["walk_fwd", "walk/side#1", "bounce"], ["train", "train", "test"],
             [["a person walks forward", "someone walks"], ["a person steps to the left"], ["jumping in place"]],
-            labels=["walk", "walk", "jump"], vocab=["a", "forward", "person", "someone", "walks"],
+            labels=["walk", "walk", "jump"], vocab=list(motionio.VOCAB_SPECIALS) + ["a", "forward", "person", "someone", "walks"],
             provenance={"generator": "test_render_tools.py", "version": "1", "seed": 3})
 
     @classmethod
@@ -92,6 +94,17 @@ class RenderAndStats(unittest.TestCase):
                     self.assertIn(f.read(6), (b"GIF87a", b"GIF89a"))
                 self.assertGreater(os.path.getsize(path), 1024)
         self.assertEqual(sorted(os.listdir(out)), sorted(os.path.basename(p) for p in expected))
+
+    def test_long_strips_wrap_and_stay_bounded(self):
+        out = os.path.join(self.tmp, "long")
+        r = run_tool("render_motion.py", self.file, "--out", out, "--clips", "2", "--frames", "40")
+        self.assertEqual(r.returncode, 0, r.stderr)
+        img = plt_image.imread(os.path.join(out, "0002_bounce.png"))
+        h, w = img.shape[:2]
+        self.assertLessEqual(max(w, h), 4000)
+        # 40 poses at 12 per line: four lines of fixed-size panels, not one 40-panel-wide strip.
+        self.assertLess(w, 12 * 170 + 100)
+        self.assertGreater(h, 4 * 210)
 
     def test_render_by_id_and_default_count(self):
         out = os.path.join(self.tmp, "by_id")

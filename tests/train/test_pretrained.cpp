@@ -53,6 +53,25 @@ TEST_CASE("pretrained: ship, install instead of training, refuse changed bytes",
   // Shipping again replaces the entry instead of adding one.
   ship_run(run, root, "configs/prior/flow_x.yaml", {"model.smooth_weight=2"}, "0123456789ab", "again");
   REQUIRE(read_pretrained_manifest(root).size() == 1);
+  {
+    // A retraining of the same config under a new hash supersedes the old entry and its
+    // files; another override set of the same config is a different component and stays.
+    TempDir t2("pretrained_supersede");
+    const fs::path a = t2.path / "runs" / "prior" / "flow_x-aaaaaaaaaaaa", b = t2.path / "runs" / "prior" / "flow_x-bbbbbbbbbbbb";
+    const fs::path c = t2.path / "runs" / "prior" / "flow_x-cccccccccccc", r2 = t2.path / "shipped";
+    fake_finished_run(a);
+    fake_finished_run(b);
+    fake_finished_run(c);
+    ship_run(a, r2, "configs/prior/flow_x.yaml", {}, "aaaaaaaaaaaa", "r");
+    ship_run(c, r2, "configs/prior/flow_x.yaml", {"model.smooth_weight=2"}, "cccccccccccc", "r");
+    ship_run(b, r2, "configs/prior/flow_x.yaml", {}, "bbbbbbbbbbbb", "r");
+    const auto left = read_pretrained_manifest(r2);
+    REQUIRE(left.size() == 2);
+    CHECK(left[0].name == "flow_x-cccccccccccc");
+    CHECK(left[1].name == "flow_x-bbbbbbbbbbbb");
+    CHECK_FALSE(fs::exists(r2 / "prior" / "flow_x-aaaaaaaaaaaa"));
+    CHECK(fs::exists(r2 / "prior" / "flow_x-cccccccccccc" / "checkpoints" / "final.pt"));
+  }
 
   ScopedEnv env("MOTIONCTL_PRETRAINED", root.string());
   const fs::path target = tmp.path / "fresh" / "prior" / e.name;

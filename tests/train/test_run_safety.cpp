@@ -47,7 +47,7 @@ class ToyFaultTrainer : public Trainable {
  public:
   ToyFaultTrainer(const ToyFaultConfig& c, const TrainContext& ctx) : cfg_(c), ctx_(ctx) {}
   torch::nn::Module& module() override { return m_; }
-  LossOutput loss(const std::vector<int64_t>&) override {
+  LossOutput loss(const std::vector<int64_t>&, const BatchShard&) override {
     ++calls_;
     LossOutput out;
     out.loss = (m_.w - 2).pow(2).mean();

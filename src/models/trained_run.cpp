@@ -1,0 +1,99 @@
+// Opening a trained component's run directory: the checks every loader shares.
+#include "models/trained_run.h"
+
+#include <fstream>
+
+#include <fmt/ranges.h>
+
+#include "core/error.h"
+
+namespace mc {
+
+namespace {
+
+// A config holding only the `model:` component.
+struct ModelSection : Config {
+  Component model{"model"};
+  void visit(FieldVisitor& v) override { v("model", model, "the trained model (picked by type)"); }
+};
+
+}  // namespace
+
+Component read_model_section(const std::string& config_file) {
+  ConfigSource src = compose_config(config_file);
+  // Only `model:` is read: a run's run/data/optim sections say how it was trained,
+  // which no user of the trained weights needs.
+  std::vector<std::string> others;
+  if (src.root->IsMap())
+    for (const auto& kv : *src.root)
+      if (kv.first.as<std::string>() != "model") others.push_back(kv.first.as<std::string>());
+  for (const auto& k : others) src.root->remove(k);
+  if (!src.root->IsMap() || !(*src.root)["model"])
+    fail("'{}' has no model: section; it is not the config.yaml of a training run", config_file);
+  ModelSection s;
+  parse_config(src, s);
+  return s.model;
+}
+
+TrainedRun open_trained_run(const std::string& run_dir, const TrainedRunSpec& spec) {
+  namespace fs = std::filesystem;
+  TrainedRun r;
+  r.dir = fs::path(run_dir);
+  r.name = run_dir;
+  r.what = spec.what;
+  const std::string types = fmt::format("{}", fmt::join(spec.types, " or "));
+  if (!fs::is_directory(r.dir))
+    fail("{} run directory '{}' does not exist; {}", spec.what, run_dir,
+         spec.how_to_train.empty() ? fmt::format("point at a finished {} run", types) : spec.how_to_train);
+  std::vector<fs::path> needed = {r.dir / "config.yaml", r.final_pt()};
+  for (const auto& o : spec.outputs) needed.push_back(r.output(o));
+  for (const fs::path& p : needed)
+    if (!fs::exists(p))
+      fail("{} run '{}' is incomplete: '{}' is missing; finish it with `motionctl train {}/config.yaml` (or point at "
+           "a finished {} run)",
+           spec.what, run_dir, p.string(), run_dir, types);
+  r.model = read_model_section((r.dir / "config.yaml").string());
+  if (std::find(spec.types.begin(), spec.types.end(), r.model.type) == spec.types.end())
+    fail("'{}' is a run of model type '{}', not {} {} ({})", run_dir, r.model.type,
+         std::string("aeiou").find(spec.what.front()) == std::string::npos ? "a" : "an", spec.what, types);
+  return r;
+}
+
+void TrainedRun::read_meta(const std::string& file, const std::function<void(const YAML::Node&)>& read) const {
+  const std::string path = output(file).string();
+  try {
+    read(YAML::LoadFile(path));
+  } catch (const YAML::Exception& e) {
+    fail("'{}' is corrupt: {}", path, e.what());
+  }
+}
+
+std::vector<std::string> TrainedRun::vocab_words() const {
+  std::vector<std::string> words;
+  std::ifstream f(output("vocab.txt"));
+  for (std::string w; std::getline(f, w);) words.push_back(w);
+  return words;
+}
+
+void TrainedRun::load_weights(torch::nn::Module& module, const std::string& mismatch) const {
+  load_weights_from(final_pt(), module, mismatch);
+}
+
+void TrainedRun::load_weights_from(const std::filesystem::path& file, torch::nn::Module& module,
+                                   const std::string& mismatch) const {
+  std::string detail;
+  try {
+    torch::serialize::InputArchive ar;
+    ar.load_from(file.string());
+    module.load(ar);
+    return;
+  } catch (const c10::Error& e) {
+    detail = e.what_without_backtrace();
+  } catch (const std::exception& e) {  // torch::jit::ErrorReport on a damaged file
+    detail = e.what();
+  }
+  fail("{} checkpoint '{}' is unreadable or does not match {} ({})", what, file.string(), mismatch,
+       detail.substr(0, 200));
+}
+
+}  // namespace mc
