@@ -22,6 +22,11 @@ Eigen::VectorXd ActiveCholesky::forward(const Eigen::VectorXd& v) const {
   return l_.topLeftCorner(k_, k_).triangularView<Eigen::Lower>().solve(v);
 }
 
+void ActiveCholesky::backward_in_place(Eigen::Ref<Eigen::VectorXd> w) const {
+  if (k_ == 0) return;
+  l_.topLeftCorner(k_, k_).transpose().triangularView<Eigen::Upper>().solveInPlace(w);
+}
+
 void ActiveCholesky::solve_in_place(Eigen::Ref<Eigen::VectorXd> b) const {
   if (k_ == 0) return;
   auto L = l_.topLeftCorner(k_, k_);
@@ -74,57 +79,59 @@ constexpr double kDependent = 1e-10;  // Schur complement / M_pp below this: the
 
 }  // namespace
 
-DualQpResult solve_dual_qp(const Eigen::MatrixXd& M, const Eigen::VectorXd& r, int equalities,
-                           const Eigen::MatrixXd& l_eq, const Eigen::VectorXd& lambda_eq,
+DualQpResult solve_dual_qp(const Eigen::SparseMatrix<double>& M, const Eigen::VectorXd& r,
                            const std::vector<int>& warm, const Eigen::VectorXd& scale_in) {
-  const int m = static_cast<int>(M.rows()), mE = equalities;
-  if (M.cols() != m || r.size() != m || mE < 0 || mE > m || l_eq.rows() != mE || lambda_eq.size() != mE ||
-      (scale_in.size() != 0 && scale_in.size() != m))
+  using ColIter = Eigen::SparseMatrix<double>::InnerIterator;
+  const int m = static_cast<int>(M.rows());
+  if (M.cols() != m || r.size() != m || (scale_in.size() != 0 && scale_in.size() != m))
     throw std::invalid_argument("solve_dual_qp: inconsistent sizes");
-  const Eigen::VectorXd scale = scale_in.size() ? scale_in : Eigen::VectorXd(M.diagonal());
+  Eigen::VectorXd diag = Eigen::VectorXd::Zero(m);
+  for (int j = 0; j < m; ++j)
+    for (ColIter it(M, j); it; ++it)
+      if (it.row() == j) diag[j] = it.value();
+  const Eigen::VectorXd& scale = scale_in.size() ? scale_in : diag;
   DualQpResult out;
   Eigen::VectorXd& lambda = out.lambda;
   lambda = Eigen::VectorXd::Zero(m);
-  lambda.head(mE) = lambda_eq;
-  std::vector<int> act(mE);  // active rows in the factor's order: the equalities, then inequalities
-  for (int i = 0; i < mE; ++i) act[i] = i;
-  std::vector<char> is_active(m, 0);
-  std::fill(is_active.begin(), is_active.begin() + mE, 1);
+  std::vector<int> act;  // active rows in the factor's order
+  std::vector<int> position(m, -1);  // row -> its position in act, -1 inactive
   ActiveCholesky chol;
-  chol.reset(l_eq, m);
-  auto column = [&](int p) {  // M_{A, p}
-    Eigen::VectorXd v(act.size());
-    for (size_t k = 0; k < act.size(); ++k) v[static_cast<Eigen::Index>(k)] = M(act[k], p);
+  chol.reset(Eigen::MatrixXd(0, 0), m);
+  auto column = [&](int p) {  // M_{A, p}: column p's entries at the active rows
+    Eigen::VectorXd v = Eigen::VectorXd::Zero(static_cast<Eigen::Index>(act.size()));
+    for (ColIter it(M, p); it; ++it)
+      if (position[it.row()] >= 0) v[position[it.row()]] = it.value();
     return v;
   };
   auto remove_position = [&](size_t q) {
     lambda[act[q]] = 0.0;
-    is_active[act[q]] = 0;
+    position[act[q]] = -1;
     chol.remove(static_cast<int>(q));
     act.erase(act.begin() + static_cast<std::ptrdiff_t>(q));
+    for (size_t k = q; k < act.size(); ++k) position[act[k]] = static_cast<int>(k);
     ++out.iterations;
   };
 
   // Warm start: the previous active rows, kept while independent and correctly signed.
   if (!warm.empty()) {
     for (int i : warm) {
-      if (i < mE || i >= m || is_active[i]) continue;
+      if (i < 0 || i >= m || position[i] >= 0) continue;
       Eigen::VectorXd w = chol.forward(column(i));
-      const double s = M(i, i) - w.squaredNorm();
+      const double s = diag[i] - w.squaredNorm();
       if (!(s > kDependent * scale[i])) continue;
       chol.append(w, s);
+      position[i] = static_cast<int>(act.size());
       act.push_back(i);
-      is_active[i] = 1;
     }
     while (true) {
       Eigen::VectorXd b(act.size());
       for (size_t k = 0; k < act.size(); ++k) b[static_cast<Eigen::Index>(k)] = r[act[k]];
       chol.solve_in_place(b);
       for (size_t k = 0; k < act.size(); ++k) lambda[act[k]] = b[static_cast<Eigen::Index>(k)];
-      // An active inequality must push (lambda <= 0); drop the worst offender and re-solve.
+      // An active row must push (lambda <= 0); drop the worst offender and re-solve.
       size_t worst = act.size();
       double worst_value = 0.0;
-      for (size_t k = static_cast<size_t>(mE); k < act.size(); ++k)
+      for (size_t k = 0; k < act.size(); ++k)
         if (lambda[act[k]] > worst_value) worst_value = lambda[act[k]], worst = k;
       if (worst == act.size()) break;
       remove_position(worst);
@@ -132,33 +139,35 @@ DualQpResult solve_dual_qp(const Eigen::MatrixXd& M, const Eigen::VectorXd& r, i
   }
 
   Eigen::VectorXd m_lambda = M * lambda;  // kept current: c = M lambda - r
+  auto add_column = [&](int j, double a) {  // m_lambda += a M_{:, j}
+    for (ColIter it(M, j); it; ++it) m_lambda[it.row()] += a * it.value();
+  };
   const int max_iterations = 10 * (m + 10);
   while (true) {
-    // The most violated inactive inequality, measured in the row's own R-norm.
+    // The most violated inactive row, measured in the row's own norm.
     int p = -1;
     double best = 0.0;
-    for (int i = mE; i < m; ++i) {
-      if (is_active[i]) continue;
+    for (int i = 0; i < m; ++i) {
+      if (position[i] >= 0) continue;
       const double c = m_lambda[i] - r[i];
       if (c <= inequality_tolerance(r[i])) continue;
-      const double score = c / std::sqrt(std::max(M(i, i), 1e-300));
+      const double score = c / std::sqrt(std::max(diag[i], 1e-300));
       if (score > best) best = score, p = i;
     }
     if (p < 0) break;
-    // Add p, dropping active inequalities that would change sign on the way.
+    // Add p, dropping active rows that would change sign on the way.
     while (true) {
       if (++out.iterations > max_iterations)
         throw std::runtime_error("solve_dual_qp: no convergence (cycling active set); please report this input");
-      const Eigen::VectorXd v = column(p);
-      const Eigen::VectorXd w = chol.forward(v);
-      Eigen::VectorXd z = v;
-      chol.solve_in_place(z);  // z = M_AA^-1 M_Ap
-      const double s = M(p, p) - w.squaredNorm();
-      // lambda_A(t) = lambda_A + t z, lambda_p(t) = lambda_p - t; an active inequality blocks at lambda = 0.
+      const Eigen::VectorXd w = chol.forward(column(p));
+      Eigen::VectorXd z = w;
+      chol.backward_in_place(z);  // z = M_AA^-1 M_Ap
+      const double s = diag[p] - w.squaredNorm();
+      // lambda_A(t) = lambda_A + t z, lambda_p(t) = lambda_p - t; an active row blocks at lambda = 0.
       double t2 = std::numeric_limits<double>::infinity();
       size_t block = act.size();
       const double z_tol = 1e-12 * std::max(1.0, z.size() ? z.cwiseAbs().maxCoeff() : 0.0);
-      for (size_t k = static_cast<size_t>(mE); k < act.size(); ++k) {
+      for (size_t k = 0; k < act.size(); ++k) {
         const double zk = z[static_cast<Eigen::Index>(k)];
         if (zk <= z_tol) continue;
         const double ratio = -lambda[act[k]] / zk;
@@ -178,24 +187,27 @@ DualQpResult solve_dual_qp(const Eigen::MatrixXd& M, const Eigen::VectorXd& r, i
       }
       const double t1 = dependent ? std::numeric_limits<double>::infinity() : std::max(0.0, c_p / s);
       const double t = std::min(t1, t2);
-      for (size_t k = 0; k < act.size(); ++k) lambda[act[k]] += t * z[static_cast<Eigen::Index>(k)];
+      // lambda and M lambda change by t (z on A, -1 at p): sparse columns only.
+      for (size_t k = 0; k < act.size(); ++k) {
+        const double dz = t * z[static_cast<Eigen::Index>(k)];
+        lambda[act[k]] += dz;
+        if (dz != 0.0) add_column(act[k], dz);
+      }
       lambda[p] -= t;
-      // M lambda changes by M_{:,A} (t z) - t M_{:,p}.
-      for (size_t k = 0; k < act.size(); ++k) m_lambda.noalias() += (t * z[static_cast<Eigen::Index>(k)]) * M.col(act[k]);
-      m_lambda.noalias() -= t * M.col(p);
+      add_column(p, -t);
       if (t1 <= t2) {
         chol.append(w, s);
+        position[p] = static_cast<int>(act.size());
         act.push_back(p);
-        is_active[p] = 1;
         ++out.iterations;
         break;
       }
       // The blocking multiplier is (up to rounding) 0 after the step; set it exactly.
-      m_lambda.noalias() -= lambda[act[block]] * M.col(act[block]);
+      add_column(act[block], -lambda[act[block]]);
       remove_position(block);
     }
   }
-  for (size_t k = static_cast<size_t>(mE); k < act.size(); ++k) out.active.push_back(act[k]);
+  out.active = act;
   std::sort(out.active.begin(), out.active.end());
   return out;
 }

@@ -204,74 +204,124 @@ void ProjectionSolver::build_components() {
   }
   for (size_t ci = 0; ci < components_.size(); ++ci) {
     for (int gi : components_[ci].groups) component_of_group_[gi] = static_cast<int>(ci);
+    build_component(components_[ci]);
     refresh_component(components_[ci]);
   }
+}
+
+// The layout of U = P G_c^T and the pattern of M', fixed by A's groups and G: row k's
+// pieces sit on the blocks its entries touch and on every block of each equality
+// group it reaches (P's block there is dense); M'(k, l) is non-zero only when row k
+// has an entry on a block of row l's pieces.
+void ProjectionSolver::build_component(Component& c) {
+  const int J = obs_.joints, n = static_cast<int>(c.g_rows.size());
+  c.u.assign(n, {});
+  c.entries.assign(n, {});
+  c.reach.assign(n, {});
+  for (int k = 0; k < n; ++k) {
+    const int r = c.g_rows[k];
+    std::vector<int> blocks, reached;
+    for (RowIter it(obs_.G, r); it; ++it) {
+      const int b = block_of(it.col(), J), gi = group_of_block_[b];
+      blocks.push_back(b);
+      if (gi >= 0 && std::find(reached.begin(), reached.end(), gi) == reached.end()) {
+        reached.push_back(gi);
+        blocks.insert(blocks.end(), groups_[gi].blocks.begin(), groups_[gi].blocks.end());
+      }
+    }
+    std::sort(blocks.begin(), blocks.end());
+    blocks.erase(std::unique(blocks.begin(), blocks.end()), blocks.end());
+    auto piece_at = [&](int b) {
+      return static_cast<int>(std::lower_bound(blocks.begin(), blocks.end(), b) - blocks.begin());
+    };
+    for (int b : blocks) c.u[k].push_back({b, Eigen::VectorXd::Zero(J)});
+    for (RowIter it(obs_.G, r); it; ++it)
+      c.entries[k].push_back({piece_at(block_of(it.col(), J)), joint_of(it.col(), J), it.value()});
+    for (int gi : reached) {
+      const Group& g = groups_[gi];
+      RowGroup rg;
+      rg.group = gi;
+      for (RowIter it(obs_.G, r); it; ++it) {
+        const int b = block_of(it.col(), J);
+        if (group_of_block_[b] != gi) continue;
+        const int lb = static_cast<int>(std::find(g.blocks.begin(), g.blocks.end(), b) - g.blocks.begin());
+        rg.gain_cols.push_back({lb * J + joint_of(it.col(), J), it.value()});
+      }
+      for (int b : g.blocks) rg.piece_of_block.push_back(piece_at(b));
+      c.reach[k].push_back(std::move(rg));
+    }
+  }
+  // The pattern: block -> (row l, piece) covering it; pairs (k, l), k <= l, that meet.
+  std::unordered_map<int, std::vector<std::pair<int, int>>> covering;
+  for (int l = 0; l < n; ++l)
+    for (int pi = 0; pi < static_cast<int>(c.u[l].size()); ++pi) covering[c.u[l][pi].block].push_back({l, pi});
+  struct Raw {
+    int k, l, piece, joint;
+    double a;
+  };
+  std::vector<Raw> raw;
+  std::vector<Eigen::Triplet<double>> pattern;
+  for (int k = 0; k < n; ++k) {
+    pattern.emplace_back(k, k, 0.0);
+    for (const RowEntry& e : c.entries[k])
+      for (const auto& [l, pi] : covering[c.u[k][e.piece].block]) {
+        if (l < k) continue;
+        raw.push_back({k, l, pi, e.joint, e.a});
+        pattern.emplace_back(k, l, 0.0);
+        pattern.emplace_back(l, k, 0.0);
+      }
+  }
+  c.m.resize(n, n);
+  c.m.setFromTriplets(pattern.begin(), pattern.end());  // duplicates sum to 0: the pattern only
+  c.m.makeCompressed();
+  auto slot = [&](int row, int col) {
+    const int* begin = c.m.innerIndexPtr() + c.m.outerIndexPtr()[col];
+    const int* end = c.m.innerIndexPtr() + c.m.outerIndexPtr()[col + 1];
+    return static_cast<int>(std::lower_bound(begin, end, row) - c.m.innerIndexPtr());
+  };
+  c.terms.clear();
+  c.terms.reserve(raw.size());
+  for (const Raw& t : raw) c.terms.push_back({slot(t.k, t.l), slot(t.l, t.k), t.l, t.piece, t.joint, t.a});
+  c.diagonal.resize(n);
+  for (int k = 0; k < n; ++k) c.diagonal[k] = slot(k, k);
 }
 
 // U = P G_c^T with P = R^-1 - sum over groups W_g M_g^-1 W_g^T, one row at a time:
 // R^-1 g^T from columns of K^-1, then per equality group the row reaches, the group's
 // part W_g (M_g^-1 A_g R^-1 g^T) = W_g (gain_g^T restricted to g's entries) removed.
-// M' = G_c U + Sigma_c. Only the groups' existing factors are used.
+// M' = G_c U + Sigma_c on the pattern build_component laid out. Only the groups'
+// existing factors are used.
 void ProjectionSolver::refresh_component(Component& c) {
   const int J = obs_.joints, n = static_cast<int>(c.g_rows.size());
   const bool euclidean = metric_.is_euclidean();
   const Eigen::MatrixXd& k_inv = metric_.block_inverse();
-  c.u.assign(n, {});
   c.scale.resize(n);
-  auto piece_of = [&](std::vector<Piece>& pieces, int block) -> Eigen::VectorXd& {
-    for (auto& pc : pieces)
-      if (pc.block == block) return pc.value;
-    pieces.push_back({block, Eigen::VectorXd::Zero(J)});
-    return pieces.back().value;
-  };
+  Eigen::VectorXd coef, wc;
   for (int k = 0; k < n; ++k) {
-    const int r = c.g_rows[k];
     std::vector<Piece>& pieces = c.u[k];
-    for (RowIter it(obs_.G, r); it; ++it) {
-      Eigen::VectorXd& v = piece_of(pieces, block_of(it.col(), J));
-      const int j = joint_of(it.col(), J);
-      if (euclidean) v[j] += it.value();
-      else v += it.value() * k_inv.col(j);
+    for (Piece& pc : pieces) pc.value.setZero();
+    for (const RowEntry& e : c.entries[k]) {
+      if (euclidean) pieces[e.piece].value[e.joint] += e.a;
+      else pieces[e.piece].value += e.a * k_inv.col(e.joint);
     }
     double norm = 0;  // g R^-1 g^T
-    for (RowIter it(obs_.G, r); it; ++it) norm += it.value() * piece_of(pieces, block_of(it.col(), J))[joint_of(it.col(), J)];
-    c.scale[k] = norm + obs_.g_variance[r];
+    for (const RowEntry& e : c.entries[k]) norm += e.a * pieces[e.piece].value[e.joint];
+    c.scale[k] = norm + obs_.g_variance[c.g_rows[k]];
     // Condition on each equality group the row reaches.
-    std::vector<int> reached;
-    for (RowIter it(obs_.G, r); it; ++it) {
-      const int gi = group_of_block_[block_of(it.col(), J)];
-      if (gi >= 0 && std::find(reached.begin(), reached.end(), gi) == reached.end()) reached.push_back(gi);
+    for (const RowGroup& rg : c.reach[k]) {
+      const Factor& f = factors_[groups_[rg.group].factor];
+      coef.setZero(f.gain_t.rows());  // M_g^-1 A_g R^-1 g^T
+      for (const auto& [col, a] : rg.gain_cols) coef += a * f.gain_t.col(col);
+      wc.noalias() = f.w * coef;
+      for (size_t lb = 0; lb < rg.piece_of_block.size(); ++lb)
+        pieces[rg.piece_of_block[lb]].value -= wc.segment(static_cast<Eigen::Index>(lb) * J, J);
     }
-    for (int gi : reached) {
-      const Group& g = groups_[gi];
-      const Factor& f = factors_[g.factor];
-      Eigen::VectorXd coef = Eigen::VectorXd::Zero(f.gain_t.rows());  // M_g^-1 A_g R^-1 g^T
-      for (RowIter it(obs_.G, r); it; ++it) {
-        const int b = block_of(it.col(), J);
-        if (group_of_block_[b] != gi) continue;
-        const int lb = static_cast<int>(std::find(g.blocks.begin(), g.blocks.end(), b) - g.blocks.begin());
-        coef += it.value() * f.gain_t.col(static_cast<Eigen::Index>(lb) * J + joint_of(it.col(), J));
-      }
-      const Eigen::VectorXd wc = f.w * coef;
-      for (size_t lb = 0; lb < g.blocks.size(); ++lb)
-        piece_of(pieces, g.blocks[lb]) -= wc.segment(static_cast<Eigen::Index>(lb) * J, J);
-    }
-    std::sort(pieces.begin(), pieces.end(), [](const Piece& a, const Piece& b) { return a.block < b.block; });
   }
-  // M'_kl = g_k . U_l over the blocks U_l reaches.
-  std::unordered_map<int, std::vector<std::pair<int, std::pair<int, double>>>> entries_at;  // block -> (row, (joint, value))
-  for (int k = 0; k < n; ++k)
-    for (RowIter it(obs_.G, c.g_rows[k]); it; ++it)
-      entries_at[block_of(it.col(), J)].push_back({k, {joint_of(it.col(), J), it.value()}});
-  c.m = Eigen::MatrixXd::Zero(n, n);
-  for (int l = 0; l < n; ++l)
-    for (const Piece& pc : c.u[l]) {
-      auto found = entries_at.find(pc.block);
-      if (found == entries_at.end()) continue;
-      for (const auto& [k, e] : found->second) c.m(k, l) += e.second * pc.value[e.first];
-    }
-  c.m = 0.5 * (c.m + c.m.transpose());
-  for (int k = 0; k < n; ++k) c.m(k, k) += obs_.g_variance[c.g_rows[k]];
+  double* values = c.m.valuePtr();
+  std::fill(values, values + c.m.nonZeros(), 0.0);
+  for (const MTerm& t : c.terms) values[t.slot] += t.a * c.u[t.l][t.piece].value[t.joint];
+  for (const MTerm& t : c.terms) values[t.mirror] = values[t.slot];
+  for (int k = 0; k < n; ++k) values[c.diagonal[k]] += obs_.g_variance[c.g_rows[k]];
 }
 
 namespace {
@@ -432,7 +482,7 @@ void ProjectionSolver::project_in_place(Eigen::Ref<Eigen::MatrixXd> x, ActiveSet
           if (pos != c.g_rows.end() && *pos == row) warm_local.push_back(static_cast<int>(pos - c.g_rows.begin()));
         }
       const Eigen::VectorXd r = -values.row(s).transpose();
-      DualQpResult res = solve_dual_qp(c.m, r, 0, Eigen::MatrixXd(0, 0), Eigen::VectorXd(0), warm_local, c.scale);
+      DualQpResult res = solve_dual_qp(c.m, r, warm_local, c.scale);
       ++qp_solves_;
       qp_iterations_ += res.iterations;
       if (!res.feasible) fail_infeasible(c, res.conflict);

@@ -52,7 +52,9 @@ namespace mc {
 // rows interact only when they touch a common group or block. Such "components" of
 // inequality rows keep U = P G_c^T (stored per row as pieces on the blocks it
 // reaches, built from the groups' W and gains: nothing new is factorised) and
-// M' = G_c U + Sigma_c. A projection reads G x_e - h for every column and runs the
+// M' = G_c U + Sigma_c, sparse (rows meet only through blocks they share; its
+// pattern and the pieces' layout are built once per structure, and a variance update
+// only recomputes their numbers). A projection reads G x_e - h for every column and runs the
 // dual active-set QP on (M', h - G x_e) only for the columns with a violated row;
 // then x = x_e + U lambda. Exact: hard equalities hold to solver precision, hard
 // inequalities to ~1e-11 of their residual, whatever the warm start. A hard row
@@ -118,15 +120,35 @@ class ProjectionSolver {
     int block = 0;          // frame * 3 + axis
     Eigen::VectorXd value;  // J entries of P g^T on that block
   };
+  // What refresh_component recomputes numbers for, fixed when the structure is built.
+  struct RowEntry {  // an entry a of g at joint `joint` of the row's piece `piece`
+    int piece = 0, joint = 0;
+    double a = 0;
+  };
+  struct RowGroup {  // an equality group the row reaches
+    int group = 0;
+    std::vector<std::pair<int, double>> gain_cols;  // (column of the group's gain_t, entry of g)
+    std::vector<int> piece_of_block;                // the group's local block -> the row's piece
+  };
+  struct MTerm {  // M'(k, l) (and (l, k)) += a * u[l][piece].value[joint], k <= l
+    int slot = 0, mirror = 0;  // value indices of (k, l) and (l, k) in m
+    int l = 0, piece = 0, joint = 0;
+    double a = 0;
+  };
   struct Component {
-    std::vector<int> g_rows;               // global rows of G, ascending
-    std::vector<int> groups;               // equality groups (indices into groups_) the rows reach
-    std::vector<std::vector<Piece>> u;     // per row: P g^T
-    Eigen::MatrixXd m;                     // M' = G_c P G_c^T + Sigma_c
-    Eigen::VectorXd scale;                 // per row g R^-1 g^T + variance: the dependency test's scale
+    std::vector<int> g_rows;                     // global rows of G, ascending
+    std::vector<int> groups;                     // equality groups (indices into groups_) the rows reach
+    std::vector<std::vector<Piece>> u;           // per row: P g^T, pieces sorted by block
+    std::vector<std::vector<RowEntry>> entries;  // per row
+    std::vector<std::vector<RowGroup>> reach;    // per row
+    std::vector<MTerm> terms;                    // M' = G_c U, entry by entry (pairs sharing a block)
+    std::vector<int> diagonal;                   // value index of (k, k) in m
+    Eigen::SparseMatrix<double> m;               // M' = G_c P G_c^T + Sigma_c, sparse, both triangles
+    Eigen::VectorXd scale;                       // per row g R^-1 g^T + variance: the dependency test's scale
   };
   void build_structure();
   void build_components();
+  void build_component(Component& c);  // its pieces, entries and M' pattern (structure only)
   void refresh_component(Component& c);
   int factor_for(const Group& g);  // finds or computes the factor of g's structure + variances
   void factorise(Factor& f, const std::vector<double>& variance);

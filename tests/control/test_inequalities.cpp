@@ -315,6 +315,89 @@ TEST_CASE("compiled inequality specs on the skeleton match the dense reference, 
     }
 }
 
+// The KKT conditions of the projection QP, checked densely on problems too large for
+// the enumerating reference: stationarity R (x - x_hat) + soft gradients + A_h^T mu +
+// G_act^T lambda = 0 (multipliers by least squares over the hard equalities and the
+// hard inequalities that are tight), lambda >= 0, every hard row met. Returns the
+// relative stationarity residual and writes the most negative multiplier.
+double kkt_residual(const KinematicMetric& metric, const LinearObservation& obs, const Eigen::VectorXd& x_hat,
+                    const Eigen::VectorXd& x, double* min_multiplier) {
+  const Eigen::MatrixXd R = metric.dense(obs.frames);
+  const Eigen::MatrixXd A = obs.A.toDense(), G = obs.G.toDense();
+  Eigen::VectorXd grad = R * (x - x_hat);
+  std::vector<Eigen::VectorXd> cols;
+  int equalities = 0;
+  for (int r = 0; r < obs.rows(); ++r) {
+    if (obs.is_hard(r)) cols.push_back(A.row(r).transpose()), ++equalities;
+    else grad += A.row(r).transpose() * (A.row(r).dot(x) - obs.y[r]) / obs.variance[r];
+  }
+  for (int r = 0; r < obs.inequalities(); ++r) {
+    const double v = G.row(r).dot(x) - obs.h[r];
+    if (!obs.is_hard_inequality(r)) grad += G.row(r).transpose() * std::max(0.0, v) / obs.g_variance[r];
+    else if (v > -1e-9) cols.push_back(G.row(r).transpose());
+  }
+  Eigen::MatrixXd C(x.size(), static_cast<Eigen::Index>(cols.size()));
+  for (size_t k = 0; k < cols.size(); ++k) C.col(static_cast<Eigen::Index>(k)) = cols[k];
+  const Eigen::VectorXd nu = C.colPivHouseholderQr().solve(-grad);
+  *min_multiplier = 0;
+  for (Eigen::Index k = equalities; k < nu.size(); ++k) *min_multiplier = std::min(*min_multiplier, nu[k]);
+  return (C * nu + grad).norm() / std::max(1e-12, (R * (x - x_hat)).norm());
+}
+
+TEST_CASE("speed-limit chains, floors and boxes on the skeleton meet the QP's KKT conditions", "[control][inequality]") {
+  // Chains of hundreds of rows (too many for the enumerating reference), hard and soft
+  // rows, both metrics; x_hat far outside the limits so long runs of rows are active.
+  std::mt19937_64 rng(17);
+  for (int trial = 0; trial < 6; ++trial) {
+    const int T = 16 + 2 * trial;
+    std::vector<float> src = random_motion(rng, T, skel());
+    float lowest = INFINITY;
+    for (size_t i = 1; i < src.size(); i += 3) lowest = std::min(lowest, src[i]);
+    for (size_t i = 1; i < src.size(); i += 3) src[i] -= lowest;
+    // the source's own largest per-axis step, so the source meets every limit
+    double fastest = 0;
+    for (int t = 0; t + 1 < T; ++t)
+      for (int j : {0, 20, 21})
+        for (int c : {0, 2})
+          fastest = std::max(fastest, std::abs(double(src[((t + 1) * 22 + j) * 3 + c]) - src[(t * 22 + j) * 3 + c]));
+    const std::string spec = fmt::format(
+        "- {{type: keyframe, joints: [pelvis], frames: [0, {}], axes: xz, from_source: true}}\n"
+        "- {{type: keyframe, joints: [l_wrist], frames: [5], from_source: true, variance: {}}}\n"
+        "- {{type: floor}}\n"
+        "- {{type: speed_limit, joints: [pelvis, l_wrist, r_wrist], axes: xz, max: {}}}\n"
+        "- {{type: speed_limit, joints: [head], axes: y, max: 0.01, variance: 0.001}}\n"
+        "- {{type: box, joints: [head], axes: y, max: {}, variance: 0.01}}",
+        T - 1, trial % 2 ? 1e-3 : 0.0, fastest * 1.05, 1.3 - lowest);
+    LinearObservation obs = compile(parse(spec), T, skel(), src.data());
+    std::normal_distribution<double> n(0.0, 1.0);
+    Eigen::VectorXd x_hat = to_vector(src);
+    for (Eigen::Index i = 0; i < x_hat.size(); ++i) x_hat[i] += 0.1 * n(rng);
+    for (int t = 1; t < T; ++t)  // drift every joint along x: the speed limits bind in long runs
+      for (int j = 0; j < 22; ++j) x_hat[(t * 22 + j) * 3] += 0.08 * t * (trial % 2 ? 1 : -1);
+    for (const KinematicMetric& metric : {KinematicMetric::euclidean(22), KinematicMetric::kinematic(skel())}) {
+      ProjectionSolver solver(metric);
+      solver.set_observation(obs);
+      ProjectionSolver::ActiveSets active;
+      const Eigen::VectorXd x = solver.project(x_hat, &active).col(0);
+      double min_multiplier = 0;
+      const double stationarity = kkt_residual(metric, obs, x_hat, x, &min_multiplier);
+      INFO("trial " << trial << ", T " << T << ", " << obs.inequalities() << " inequality rows, "
+                    << active.columns[0].size() << " active, largest component " << solver.largest_component());
+      CHECK(solver.largest_component() >= 2 * (T - 1));  // a whole chain is one component
+      CHECK(active.columns[0].size() >= static_cast<size_t>(T / 2));
+      CHECK(stationarity < 1e-8);
+      CHECK(min_multiplier > -1e-8);
+      CHECK(max_hard_violation(obs, x) < 1e-9);
+      CHECK(max_hard_eq_residual(obs, x) < 1e-9);
+      // the warm start from this answer reproduces it, with nothing to add or drop
+      const int64_t before = solver.qp_iterations();
+      const Eigen::VectorXd again = solver.project(x_hat, &active).col(0);
+      CHECK((again - x).cwiseAbs().maxCoeff() < 1e-10);
+      CHECK(solver.qp_iterations() == before);
+    }
+  }
+}
+
 TEST_CASE("a warm start gives the cold start's answer, whatever rows it names", "[control][inequality]") {
   std::mt19937_64 rng(21);
   for (int trial = 0; trial < 60; ++trial) {
