@@ -77,6 +77,8 @@ std::map<std::string, double> t2m_metrics(const EvalEmbeddings& e, const EvalPro
 // traj_err/loc_err at each threshold, avg_err, control_error from per-sample entry errors.
 static void add_control_metrics(const std::vector<std::vector<double>>& errors, const EvalProtocol& p,
                                 std::map<std::string, double>& out) {
+  // Specs of inequality or direction items only (a floor) have no control entries.
+  if (std::none_of(errors.begin(), errors.end(), [](const auto& e) { return !e.empty(); })) return;
   ControlOptions co;
   co.thresholds = p.control_thresholds;
   ControlMetrics cm = control_metrics_from_errors(errors, co);

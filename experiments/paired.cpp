@@ -22,7 +22,10 @@ namespace fs = std::filesystem;
 bool group_averaged_metric(const std::string& m) {
   static const std::set<std::string> g = {"avg_err",  "traj_err",  "loc_err",   "control_error", "foot_skating",
                                           "foot_skating_padded", "foot_skating_valid", "mpjpe_2d", "mpjpe_3d",
-                                          "avg_err_2d", "avg_err_3d"};
+                                          "avg_err_2d", "avg_err_3d",
+                                          // issue 20: angle error of direction items, floor contact, worst inequality
+                                          "direction_error", "floor_penetration", "floor_frames",
+                                          "inequality_violation"};
   return g.count(m) > 0 || m.rfind("traj_err_", 0) == 0 || m.rfind("loc_err_", 0) == 0;
 }
 

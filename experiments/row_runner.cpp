@@ -139,8 +139,9 @@ struct RowRunKey : Config {
   int64_t seed = 0;
   EvalProtocol eval;
   // What a finished run holds: 2 = samples.h5 with per-sample records (paired tests),
-  // group-mean headline values, both foot-skating conventions, KID and the GT floor.
-  int record_version = 2;
+  // group-mean headline values, both foot-skating conventions, KID and the GT floor;
+  // 3 = also floor penetration, inequality violation and direction errors (issue 20).
+  int record_version = 3;
   void visit(FieldVisitor& v) override {
     v("record_version", record_version, "what a finished row run holds (bumped when that changes)");
     v("generator", generator, "resolved generator");
@@ -205,12 +206,40 @@ std::map<std::string, std::vector<double>> row_sample_metrics(const MotionSet& g
     col("foot_skating_padded")[i] = clip.frames >= padded.padded_length ? foot_skating_ratio(clip, toes, padded)
                                                                         : col("foot_skating_valid")[i];
   }
+  for (size_t i = 0; i < n; ++i) {
+    // Toes under the floor (y = 0): depth in metres, and the fraction of frames with a
+    // toe more than 1e-6 m below it (the precision a hard floor row is met to; float32
+    // world coordinates round at ~1e-7 m, so "strictly below" would count rounding).
+    const JointsView clip = joints_view(gen, i);
+    double lowest = INFINITY;
+    int below = 0;
+    for (int t = 0; t < clip.length; ++t) {
+      bool any = false;
+      for (int j : toes) {
+        const double y = clip.at(t, j).y();
+        lowest = std::min(lowest, y);
+        any = any || y < -1e-6;
+      }
+      below += any;
+    }
+    if (clip.length > 0) {
+      col("floor_penetration")[i] = std::max(0.0, -lowest);
+      col("floor_frames")[i] = static_cast<double>(below) / clip.length;
+    }
+  }
   const double th0 = proto.control_thresholds.front();
   for (size_t i = 0; i < n; ++i) {
     const ControlTask& task = tasks[i];
     if (task.spec.items.empty()) continue;
     const int T = gen.lengths[i];
     LinearObservation obs = compile(task.spec, T, skel, task.source.empty() ? nullptr : task.source.data());
+    if (obs.inequalities() > 0) col("inequality_violation")[i] = max_inequality_violation(obs, gen.clip(i));
+    if (!obs.directions.empty()) {
+      double sum = 0;
+      auto angles = direction_errors(obs, gen.clip(i));
+      for (double a : angles) sum += a;
+      col("direction_error")[i] = sum / angles.size();
+    }
     std::vector<double> e = observation_entry_errors(obs, gen.clip(i));
     if (!e.empty()) {
       double sum = 0;

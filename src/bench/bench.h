@@ -38,9 +38,13 @@ struct ProjflowBenchOptions {
   int keyframe_every = 5;     // hard keyframes on all joints every N frames
   std::vector<int> dense_frames = {12, 24, 49};
   int dno_steps = 5;          // DNO optimisation steps timed (0 = skip); reported per step and at 500
+  bool inequalities = true;       // time the inequality QP (floor, speed limit) against equality-only
+  bool inequalities_only = false;  // that section alone
 };
 // Unconstrained vs ProjFlow sampling time (with and without pseudo-observations),
-// DNO time per sample, and structured vs dense projection solves; prints a report to `out`.
+// DNO time per sample, structured vs dense projection solves, and the projection's
+// time with inequality rows (a floor under the toes; plus a pelvis speed limit)
+// against the same equality-only projection, warm and cold; prints a report to `out`.
 void bench_projflow(const ProjflowBenchOptions& o, std::ostream& out);
 
 struct TrainBenchOptions {

@@ -35,6 +35,14 @@ std::vector<float> walk_motion(const Skeleton& sk, int T, uint64_t seed) {
   return m;
 }
 
+// The fixture's floor convention: the lowest joint of the clip at y = 0, so a floor
+// under the toes never contradicts keyframes taken from the clip.
+void lift_to_floor(std::vector<float>& m) {
+  float lowest = INFINITY;
+  for (size_t i = 1; i < m.size(); i += 3) lowest = std::min(lowest, m[i]);
+  for (size_t i = 1; i < m.size(); i += 3) m[i] -= lowest;
+}
+
 ControlTask keyframe_task(const Skeleton& sk, int T, int every, uint64_t seed) {
   ControlTask t;
   t.id = fmt::format("bench{}", seed);
@@ -56,6 +64,79 @@ ControlTask keyframe_task(const Skeleton& sk, int T, int every, uint64_t seed) {
 }
 }  // namespace
 
+// ProjFlow's projection time per step with inequality rows beside the same
+// equality rows, on one sampling run each (same prior, tasks and seed).
+void bench_inequalities(const ProjflowBenchOptions& o, FlowPrior& prior, std::ostream& out) {
+  const Skeleton& sk = prior.skeleton();
+  const int T = o.frames;
+  FlowSamplerConfig sc;
+  sc.steps = o.steps;
+  sc.batch_size = o.samples;
+  std::vector<ControlTask> tasks;
+  for (int i = 0; i < o.samples; ++i) {
+    ControlTask t = keyframe_task(sk, T, o.keyframe_every, 300 + i);
+    lift_to_floor(t.source);
+    tasks.push_back(std::move(t));
+  }
+  std::vector<std::string> captions(o.samples, tasks[0].caption);
+  std::vector<int> lengths(o.samples, T);
+  ConstraintItem floor;
+  floor.type = "floor";
+  floor.name = "toes above the floor";
+  ConstraintItem speed;
+  speed.type = "speed_limit";
+  speed.name = "pelvis speed";
+  speed.joints = {JointRef{0, ""}};
+  speed.axes = {0, 2};
+  speed.upper = {0.2};
+  struct Case {
+    std::string label;
+    std::vector<ConstraintItem> extra;
+  };
+  const std::vector<Case> cases = {{"toes y >= 0 at every frame", {floor}},
+                                   {"+ pelvis |dx|, |dz| <= 0.2 m/frame", {floor, speed}}};
+  out << fmt::format("projection with inequality rows (ProjFlow, pseudo-observations on, {} samples x {} steps, "
+                     "keyframes of all joints every {} frames):\n",
+                     o.samples, o.steps, o.keyframe_every);
+  ProjFlowConfig cfg;
+  const KinematicMetric metric = KinematicMetric::from_config(cfg.metric, sk);
+  auto run = [&](const std::vector<ControlTask>& ts, bool warm, int64_t* qps, int64_t* iters, double* worst) {
+    auto obs = model_observations(prior, ts);
+    ProjFlowStepper stepper(cfg, metric, obs);
+    stepper.set_warm_start(warm);
+    auto r = sample_flow(prior, captions, lengths, sc, 1, &stepper);
+    if (qps) *qps = stepper.qp_solves();
+    if (iters) *iters = stepper.qp_iterations();
+    if (worst) {  // worst hard inequality violation of the output, world metres
+      *worst = 0;
+      for (int i = 0; i < o.samples; ++i) {
+        LinearObservation w = compile(ts[i].spec, T, sk, ts[i].source.data());
+        if (w.inequalities() == 0) continue;
+        auto m = r.world[i].contiguous();
+        Eigen::VectorXd x(w.dim());
+        for (int k = 0; k < w.dim(); ++k) x[k] = m.data_ptr<float>()[k];
+        *worst = std::max(*worst, (w.G * x - w.h).maxCoeff());
+      }
+    }
+    return stepper.projection_seconds() / (static_cast<double>(o.steps) * o.samples);
+  };
+  const double base = run(tasks, true, nullptr, nullptr, nullptr);
+  out << fmt::format("  equality rows only:                   {:8.3f} ms per projection\n", 1e3 * base);
+  for (const auto& c : cases) {
+    std::vector<ControlTask> ts = tasks;
+    for (auto& t : ts) t.spec.items.insert(t.spec.items.end(), c.extra.begin(), c.extra.end());
+    int64_t qps = 0, iters = 0;
+    double worst = 0;
+    const double warm = run(ts, true, &qps, &iters, &worst);
+    const double cold = run(ts, false, nullptr, nullptr, nullptr);
+    out << fmt::format("  {:<38} {:8.3f} ms = {:.2f}x equality-only (warm start; cold {:.2f}x); {:.1f} QPs and {:.1f} "
+                       "active-set changes per projection; worst violation {:.1e} m\n",
+                       c.label, 1e3 * warm, warm / base, cold / base,
+                       static_cast<double>(qps) / (o.steps * o.samples),
+                       static_cast<double>(iters) / (o.steps * o.samples), std::max(0.0, worst));
+  }
+}
+
 void bench_projflow(const ProjflowBenchOptions& o, std::ostream& out) {
   const Skeleton& sk = humanml3d_skeleton();
   FlowPriorConfig pc;
@@ -70,6 +151,7 @@ void bench_projflow(const ProjflowBenchOptions& o, std::ostream& out) {
   out << fmt::format("ProjFlow bench: untrained ACMDM prior depth {} (width {}), {} samples x {} frames, {} steps, "
                      "{} torch thread(s)\n",
                      o.depth, 64 * o.depth, o.samples, T, o.steps, torch::get_num_threads());
+  if (o.inequalities_only) return bench_inequalities(o, prior, out);
 
   std::vector<ControlTask> tasks;
   for (int i = 0; i < o.samples; ++i) tasks.push_back(keyframe_task(sk, T, o.keyframe_every, 100 + i));
@@ -156,6 +238,7 @@ void bench_projflow(const ProjflowBenchOptions& o, std::ostream& out) {
                        "(the dense solve is O(d^3); time it with --dense-frames 196)\n",
                        full.dim(), first, seconds_since(t0) / 10);
   }
+  if (o.inequalities) bench_inequalities(o, prior, out);
 }
 
 }  // namespace mc

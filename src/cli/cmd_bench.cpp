@@ -49,7 +49,12 @@ void add_bench_command(CLI::App& app) {
   pf->add_option("--dense-frames", po->dense_frames, "clip lengths of the dense-vs-structured solver comparison");
   pf->add_option("--dno-steps", po->dno_steps, "DNO optimisation steps to time (0 = skip)")->check(CLI::Range(0, 10000));
   pf->add_option("--threads", *pthreads, "torch threads (0 = all cores)")->check(CLI::NonNegativeNumber);
-  pf->callback([po, pthreads] {
+  auto no_inequalities = std::make_shared<bool>(false);
+  pf->add_flag("--no-inequalities", *no_inequalities, "skip the inequality-projection timings");
+  pf->add_flag("--inequalities-only", po->inequalities_only,
+               "only the inequality-projection timings (floor under the toes, pelvis speed limit)");
+  pf->callback([po, pthreads, no_inequalities] {
+    po->inequalities = !*no_inequalities;
     torch::set_num_threads(*pthreads > 0 ? *pthreads : static_cast<int>(std::max(1u, std::thread::hardware_concurrency())));
     bench_projflow(*po, std::cout);
   });

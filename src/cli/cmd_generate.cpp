@@ -3,6 +3,7 @@
 // `protocol:` draws from a data split (or on the user's own constraints, `custom:`);
 // writes the motions with each sample's constraint spec (/control) and prints the
 // control errors, which `motionctl score FILE` recomputes from the file alone.
+#include <algorithm>
 #include <chrono>
 #include <iostream>
 #include <optional>
@@ -108,7 +109,9 @@ void run_generate(const std::string& file, const std::vector<std::string>& overr
   std::vector<std::vector<double>> errors;
   std::vector<ConstraintSpec> stored;  // each sample's spec with its targets written out (/control)
   std::vector<int> stored_frames;
-  double worst_hard = 0;
+  double worst_hard = 0, worst_inequality = 0;
+  std::vector<double> angles;  // direction items' angle errors, degrees
+  bool any_inequality = false;
   for (size_t i = 0; i < tasks.size(); ++i) {
     const int len = std::min<int>(g.lengths.at(i), m.t_max);
     const float* src = w.data_ptr<float>() + i * w.size(1) * J * 3;
@@ -128,16 +131,34 @@ void run_generate(const std::string& file, const std::vector<std::string>& overr
     Eigen::VectorXd r = obs.A * x - obs.y;
     for (int k = 0; k < obs.rows(); ++k)
       if (obs.is_hard(k)) worst_hard = std::max(worst_hard, std::abs(r[k]));
+    if (obs.inequalities() > 0) {
+      any_inequality = true;
+      Eigen::VectorXd v = obs.G * x - obs.h;
+      for (int k = 0; k < obs.inequalities(); ++k)
+        if (obs.is_hard_inequality(k)) worst_inequality = std::max(worst_inequality, v[k]);
+    }
+    auto a = direction_errors(obs, m.clip(i));
+    angles.insert(angles.end(), a.begin(), a.end());
   }
   m.stats = data.stats;
   m.provenance = Provenance{"motionctl generate", MOTIONCTL_VERSION, job.run.seed, dump_config(job), utc_timestamp()};
   write_motion_file(job.output, m, [&](int64_t f) { write_sample_constraints(f, stored, stored_frames, job.output); });
   std::cout << fmt::format("wrote {} motions to {} ({:.2f} s/motion)\n", m.size(), job.output,
                            g.seconds / std::max<size_t>(1, m.size()));
-  if (!errors.empty()) {
+  // Tasks with only inequality or direction items have no control entries.
+  if (std::any_of(errors.begin(), errors.end(), [](const auto& e) { return !e.empty(); })) {
     ControlMetrics cm = control_metrics_from_errors(errors);
     std::cout << fmt::format("control: traj_err {:.4f}  loc_err {:.4f}  avg_err {:.6f} m  max hard residual {:.2e}\n",
                              cm.traj_err, cm.loc_err, cm.avg_err, worst_hard);
+  }
+  if (any_inequality)
+    std::cout << fmt::format("inequalities: max hard violation {:.2e} (m, or m/frame for speed limits)\n",
+                             worst_inequality);
+  if (!angles.empty()) {
+    double sum = 0;
+    for (double a : angles) sum += a;
+    std::cout << fmt::format("directions: mean angle error {:.2f} deg over {} frames\n", sum / angles.size(),
+                             angles.size());
   }
 }
 

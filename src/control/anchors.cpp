@@ -204,14 +204,20 @@ AnchorSet anchors_from_observation(const LinearObservation& obs, std::optional<A
 
 AnchorSet anchors_from_spec(const ConstraintSpec& spec, int frames, const Skeleton& skeleton,
                             const float* source_motion, std::optional<AnchorFamily> family) {
+  // Inequality and direction items are not anchors: they ride along (RouteSolver's
+  // extra residuals, the exact projection) and are left out here.
+  ConstraintSpec anchors_only;
+  anchors_only.source = spec.source;
   for (size_t i = 0; i < spec.items.size(); ++i) {
     const auto& t = spec.items[i].type;
+    if (is_inequality_type(t) || is_direction_type(t)) continue;
     if (t != "keyframe" && t != "trajectory" && t != "planar_root")
       fail("{}: {}: {} items cannot be expressed as anchors (anchors select joint coordinates: use keyframe, "
            "trajectory or planar_root items)",
            spec.source, spec.item_label(static_cast<int>(i)), t);
+    anchors_only.items.push_back(spec.items[i]);
   }
-  return anchors_from_observation(compile(spec, frames, skeleton, source_motion), family);
+  return anchors_from_observation(compile(anchors_only, frames, skeleton, source_motion), family);
 }
 
 ConstraintSpec anchors_to_spec(const AnchorSet& set, const std::string& source) {

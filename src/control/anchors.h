@@ -61,6 +61,8 @@ struct AnchorSet {
 AnchorSet anchors_from_observation(const LinearObservation& obs, std::optional<AnchorFamily> family = {});
 // Only keyframe, trajectory and planar_root items can be anchors; other types
 // (camera_2d, relative, loop, upper_body_edit) are rejected by name before compiling.
+// Inequality and direction items (floor, tangent, ...) are skipped: they are not
+// anchors, and AnchorRoute reads them separately (RouteSolver residuals, exact projection).
 AnchorSet anchors_from_spec(const ConstraintSpec& spec, int frames, const Skeleton& skeleton,
                             const float* source_motion = nullptr, std::optional<AnchorFamily> family = {});
 // The reverse: root_3d -> one keyframe item on the root; planar_root -> one

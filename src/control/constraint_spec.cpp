@@ -31,7 +31,7 @@ const char* const kAxisNames = "xyz";
 
 // Keys every item accepts, then the keys of each type. A key valid for another
 // type gets a "does not apply" message instead of "unknown key".
-const std::vector<std::string> kCommonKeys = {"type", "name", "hard", "variance"};
+const std::vector<std::string> kCommonKeys = {"type", "name", "hard", "variance", "score_only"};
 const std::map<std::string, std::vector<std::string>>& type_keys() {
   static const std::map<std::string, std::vector<std::string>> keys = {
       {"keyframe", {"joints", "frames", "axes", "values", "from_source"}},
@@ -41,6 +41,12 @@ const std::map<std::string, std::vector<std::string>>& type_keys() {
       {"relative", {"joints", "frames", "axes", "values", "from_source"}},
       {"loop", {"joints", "frames", "axes", "up_to_root_translation"}},
       {"upper_body_edit", {"role", "frames", "axes"}},
+      {"floor", {"joints", "frames", "height"}},
+      {"half_space", {"joints", "frames", "normal", "offset", "relative_to"}},
+      {"box", {"joints", "frames", "axes", "min", "max"}},
+      {"speed_limit", {"joints", "frames", "axes", "max"}},
+      {"tangent", {"joints", "frames", "axes", "values", "from_source", "min_speed"}},
+      {"facing", {"joints", "frames", "values", "from_source", "min_width"}},
   };
   return keys;
 }
@@ -122,6 +128,41 @@ void check_item(const ConstraintItem& it, const ItemContext& ctx) {
     for (double a : {c.pitch_deg, c.yaw_deg, c.roll_deg})
       if (!std::isfinite(a)) ctx.fail_key("camera", fmt::format("angles must be finite, got {}", a));
   }
+  auto finite_key = [&](const char* key, double v) {
+    if (!std::isfinite(v)) ctx.fail_key(key, fmt::format("must be a finite number, got {}", v));
+  };
+  finite_key("height", it.height);
+  finite_key("offset", it.offset);
+  if (!std::isfinite(it.min_speed) || it.min_speed < 0)
+    ctx.fail_key("min_speed", fmt::format("must be a finite number >= 0 (metres per frame), got {}", it.min_speed));
+  if (!std::isfinite(it.min_width) || it.min_width < 0)
+    ctx.fail_key("min_width", fmt::format("must be a finite number >= 0 (metres), got {}", it.min_width));
+  if (it.type == "half_space") {
+    if (it.normal.size() != 3)
+      ctx.fail_key("normal", it.normal.empty() ? std::string("half_space items need 'normal: [nx, ny, nz]'")
+                                               : fmt::format("expected 3 numbers [nx, ny, nz], got {}", it.normal.size()));
+    double n2 = 0;
+    for (double v : it.normal) {
+      finite_key("normal", v);
+      n2 += v * v;
+    }
+    if (!(n2 > 1e-24)) ctx.fail_key("normal", "the normal is zero; give the direction in which the allowed side lies");
+  }
+  for (double v : it.lower) finite_key("min", v);
+  for (double v : it.upper) finite_key("max", v);
+  if (it.type == "box" && it.lower.empty() && it.upper.empty())
+    ctx.fail_key("type", "box items need 'min' and/or 'max' (one number, or one per axis)");
+  if (it.type == "box" && it.lower.size() == it.upper.size())
+    for (size_t k = 0; k < it.lower.size(); ++k)
+      if (it.lower[k] > it.upper[k])
+        ctx.fail_key("min", fmt::format("min {} is above max {} (entry {}): the box is empty", it.lower[k],
+                                        it.upper[k], k));
+  if (it.type == "speed_limit") {
+    if (it.upper.empty())
+      ctx.fail_key("max", "speed_limit items need 'max' (metres per frame, one number or one per axis)");
+    for (double v : it.upper)
+      if (!(v > 0)) ctx.fail_key("max", fmt::format("the speed bound must be > 0 metres per frame, got {}", v));
+  }
   if (it.frames.kind == FrameSelection::Kind::range && it.frames.step < 1)
     ctx.fail_key("frames", fmt::format("step must be >= 1, got {}", it.frames.step));
   if (it.frames.kind == FrameSelection::Kind::list && it.frames.list.empty())
@@ -147,12 +188,12 @@ class YamlItemReader {
     it.line = ctx_.line;
     if (!node_.IsMap()) fail("{}: an item must be a map with at least 'type'", ctx_.where());
     if (node_["name"]) it.name = ctx_.name = scalar_string("name");
-    if (!node_["type"]) fail("{}: the item has no 'type' (one of {})", ctx_.where(), join(constraint_types()));
+    if (!node_["type"]) fail("{}: the item has no 'type' (one of {})", ctx_.where(), join(all_constraint_types()));
     it.type = scalar_string("type");
     auto& keys = type_keys();
     if (!keys.count(it.type))
       ctx_.fail_key("type", fmt::format("unknown constraint type '{}'{}; known types: {}", it.type,
-                                        hint(it.type, constraint_types()), join(constraint_types())));
+                                        hint(it.type, all_constraint_types()), join(all_constraint_types())));
     ctx_.type = it.type;
     check_keys(it.type);
 
@@ -169,11 +210,49 @@ class YamlItemReader {
     if (node_["up_to_root_translation"])
       it.up_to_root_translation = scalar<bool>("up_to_root_translation", "true or false");
     if (node_["role"]) it.role = scalar_string("role");
+    if (node_["score_only"]) it.score_only = scalar<bool>("score_only", "true or false");
+    if (node_["height"]) it.height = scalar<double>("height", "a number (metres)");
+    if (node_["offset"]) it.offset = scalar<double>("offset", "a number (metres)");
+    if (node_["normal"]) it.normal = numbers("normal");
+    if (node_["relative_to"]) it.relative_to = joint_ref("relative_to");
+    if (node_["min"]) it.lower = numbers("min");
+    if (node_["max"]) it.upper = numbers("max");
+    if (node_["min_speed"]) it.min_speed = scalar<double>("min_speed", "a number (metres per frame)");
+    if (node_["min_width"]) it.min_width = scalar<double>("min_width", "a number (metres)");
     check_item(it, ctx_);
     return it;
   }
 
  private:
+  // One number or a flat list of numbers.
+  std::vector<double> numbers(const char* key) {
+    const YAML::Node n = node_[key];
+    std::vector<double> out;
+    auto add = [&](const YAML::Node& e) {
+      if (!e.IsScalar()) ctx_.fail_key(key, "expected a number or a flat list of numbers");
+      try {
+        out.push_back(e.as<double>());
+      } catch (const YAML::Exception&) {
+        ctx_.fail_key(key, fmt::format("expected a number, got '{}'", e.Scalar()));
+      }
+    };
+    if (n.IsSequence()) for (auto e : n) add(e);
+    else add(n);
+    if (out.empty()) ctx_.fail_key(key, "the list is empty");
+    return out;
+  }
+
+  JointRef joint_ref(const char* key) {
+    static const std::regex number(R"(^[-+]?[0-9]+$)");
+    const YAML::Node n = node_[key];
+    if (!n.IsScalar()) ctx_.fail_key(key, "expected one joint (an index or a name)");
+    JointRef r;
+    if (std::regex_match(n.Scalar(), number)) r.index = integer(n, key);
+    else r.name = n.Scalar();
+    if (!r.set()) ctx_.fail_key(key, fmt::format("joint index {} is negative", r.index));
+    return r;
+  }
+
   void check_keys(const std::string& type) {
     const auto& own = type_keys().at(type);
     std::vector<std::string> allowed = kCommonKeys;
@@ -417,7 +496,7 @@ class H5ItemReader {
     if (has_attr("name")) it.name = ctx_.name = attr_string("name");
     if (!type_keys().count(it.type))
       ctx_.fail_key("type", fmt::format("unknown constraint type '{}'{}; known types: {}", it.type,
-                                        hint(it.type, constraint_types()), join(constraint_types())));
+                                        hint(it.type, all_constraint_types()), join(all_constraint_types())));
     ctx_.type = it.type;
     check_members(it.type);
     if (has_attr("variance")) it.variance = attr_double("variance");
@@ -441,6 +520,19 @@ class H5ItemReader {
     }
     if (has_dataset("axes")) it.axes = ints("axes");
     if (has_dataset("values")) it.values = doubles("values");
+    if (has_attr("score_only")) it.score_only = attr_double("score_only") != 0;
+    if (has_attr("height")) it.height = attr_double("height");
+    if (has_attr("offset")) it.offset = attr_double("offset");
+    if (has_attr("min_speed")) it.min_speed = attr_double("min_speed");
+    if (has_attr("min_width")) it.min_width = attr_double("min_width");
+    if (has_dataset("normal")) it.normal = doubles("normal").data;
+    if (has_dataset("min")) it.lower = doubles("min").data;
+    if (has_dataset("max")) it.upper = doubles("max").data;
+    if (has_dataset("relative_to")) {
+      auto refs = joints_of("relative_to");
+      if (refs.size() != 1) ctx_.fail_key("relative_to", fmt::format("must hold exactly one joint, holds {}", refs.size()));
+      it.relative_to = refs[0];
+    }
     if (has_dataset("camera")) {
       TargetArray c = doubles("camera");
       if (c.data.size() != 4)
@@ -527,19 +619,21 @@ class H5ItemReader {
     return out;
   }
 
-  std::vector<JointRef> joints() {
-    H5Handle d(H5Dopen2(g_, "joints", H5P_DEFAULT), H5Dclose);
+  std::vector<JointRef> joints() { return joints_of("joints"); }
+
+  std::vector<JointRef> joints_of(const char* key) {
+    H5Handle d(H5Dopen2(g_, key, H5P_DEFAULT), H5Dclose);
     H5Handle t(H5Dget_type(d.get()), H5Tclose);
     std::vector<JointRef> out;
     if (H5Tget_class(t.get()) == H5T_STRING) {
       H5Handle s(H5Dget_space(d.get()), H5Sclose);
-      if (H5Sget_simple_extent_ndims(s.get()) != 1) ctx_.fail_key("joints", "must be one-dimensional");
+      if (H5Sget_simple_extent_ndims(s.get()) != 1) ctx_.fail_key(key, "must be one-dimensional");
       hssize_t n = H5Sget_simple_extent_npoints(s.get());
-      if (H5Tis_variable_str(t.get()) <= 0) ctx_.fail_key("joints", "joint names must be variable-length strings");
+      if (H5Tis_variable_str(t.get()) <= 0) ctx_.fail_key(key, "joint names must be variable-length strings");
       std::vector<char*> ptrs(static_cast<size_t>(n), nullptr);
       H5Handle mt = utf8_string_type();
       if (H5Dread(d.get(), mt.get(), H5S_ALL, H5S_ALL, H5P_DEFAULT, ptrs.data()) < 0)
-        ctx_.fail_key("joints", "unreadable dataset");
+        ctx_.fail_key(key, "unreadable dataset");
       for (char* p : ptrs) {
         JointRef r;
         r.name = p ? p : "";
@@ -547,9 +641,9 @@ class H5ItemReader {
       }
       H5Dvlen_reclaim(mt.get(), s.get(), H5P_DEFAULT, ptrs.data());
     } else {
-      for (int j : ints("joints")) out.push_back(JointRef{j, ""});
+      for (int j : ints(key)) out.push_back(JointRef{j, ""});
     }
-    if (out.empty()) ctx_.fail_key("joints", "the joint list is empty");
+    if (out.empty()) ctx_.fail_key(key, "the joint list is empty");
     return out;
   }
 
@@ -637,10 +731,43 @@ const std::vector<std::string>& constraint_types() {
   return types;
 }
 
+const std::vector<std::string>& inequality_constraint_types() {
+  static const std::vector<std::string> types = {"floor", "half_space", "box", "speed_limit"};
+  return types;
+}
+
+const std::vector<std::string>& direction_constraint_types() {
+  static const std::vector<std::string> types = {"tangent", "facing"};
+  return types;
+}
+
+const std::vector<std::string>& all_constraint_types() {
+  static const std::vector<std::string> types = [] {
+    std::vector<std::string> all = constraint_types();
+    for (auto* group : {&inequality_constraint_types(), &direction_constraint_types()})
+      all.insert(all.end(), group->begin(), group->end());
+    return all;
+  }();
+  return types;
+}
+
+bool is_inequality_type(const std::string& type) {
+  const auto& t = inequality_constraint_types();
+  return std::find(t.begin(), t.end(), type) != t.end();
+}
+
+bool is_direction_type(const std::string& type) {
+  const auto& t = direction_constraint_types();
+  return std::find(t.begin(), t.end(), type) != t.end();
+}
+
 bool ConstraintItem::operator==(const ConstraintItem& o) const {
   return type == o.type && name == o.name && variance == o.variance && joints == o.joints && frames == o.frames &&
          axes == o.axes && values == o.values && from_source == o.from_source && has_camera == o.has_camera &&
-         (!has_camera || camera == o.camera) && up_to_root_translation == o.up_to_root_translation && role == o.role;
+         (!has_camera || camera == o.camera) && up_to_root_translation == o.up_to_root_translation && role == o.role &&
+         height == o.height && normal == o.normal && offset == o.offset && relative_to == o.relative_to &&
+         lower == o.lower && upper == o.upper && min_speed == o.min_speed && min_width == o.min_width &&
+         score_only == o.score_only;
 }
 
 std::string ConstraintSpec::item_label(int index) const {
@@ -800,6 +927,18 @@ void write_constraint_spec_group(int64_t parent, const std::string& group, const
       if (it.from_source) w.attr_int("from_source", 1);
       if (it.up_to_root_translation) w.attr_int("up_to_root_translation", 1);
       if (!it.role.empty()) w.attr_string("role", it.role);
+      if (it.score_only) w.attr_int("score_only", 1);
+      if (it.height != 0.0) w.attr_double("height", it.height);
+      if (it.offset != 0.0) w.attr_double("offset", it.offset);
+      if (it.type == "tangent") w.attr_double("min_speed", it.min_speed);
+      if (it.type == "facing") w.attr_double("min_width", it.min_width);
+      if (!it.normal.empty()) w.doubles("normal", it.normal, {static_cast<int>(it.normal.size())});
+      if (!it.lower.empty()) w.doubles("min", it.lower, {static_cast<int>(it.lower.size())});
+      if (!it.upper.empty()) w.doubles("max", it.upper, {static_cast<int>(it.upper.size())});
+      if (it.relative_to.set()) {
+        if (!it.relative_to.name.empty()) w.strings("relative_to", {it.relative_to.name});
+        else w.ints("relative_to", {it.relative_to.index});
+      }
       if (!it.joints.empty()) {
         bool by_name = std::all_of(it.joints.begin(), it.joints.end(), [](auto& r) { return !r.name.empty(); });
         bool by_index = std::all_of(it.joints.begin(), it.joints.end(), [](auto& r) { return r.name.empty(); });

@@ -12,6 +12,7 @@ namespace mc {
 struct JointRef {
   int index = -1;
   std::string name;  // non-empty: refer by name
+  bool set() const { return index >= 0 || !name.empty(); }
   std::string text() const { return name.empty() ? std::to_string(index) : "'" + name + "'"; }
   bool operator==(const JointRef& o) const { return index == o.index && name == o.name; }
 };
@@ -56,6 +57,16 @@ struct TargetArray {
 //   relative        joints (exactly two: a, b), frames (default all), axes, values [F, A] or [A] | from_source
 //   loop            joints (default all), axes, frames (optional [first, last]), up_to_root_translation
 //   upper_body_edit role (default lower_body), frames (default all), axes; always from the source motion
+// Inequality items (rows G x <= h, docs/constraints.md "Inequalities"):
+//   floor           joints (default role toes), frames (default all), height: y >= height
+//   half_space      joints, frames (default all), normal, offset, relative_to: n.(x_j [- x_ref]) >= offset
+//   box             joints, frames (default all), axes, min and/or max per axis
+//   speed_limit     joints, frames (default all transitions), axes, max: |x[t+1] - x[t]| <= max per axis
+// Direction items (equality rows for the direction, one inequality row for its sense):
+//   tangent         joints (one, default the root), frames, axes (default xz), values [F, A] or [A] | from_source,
+//                   min_speed: the joint's velocity at each frame points along the value
+//   facing          joints (two: right, left; default the first two of role face), frames, values [F, 2] or [2]
+//                   (x, z) | from_source, min_width: the body faces the value (hip-difference rows)
 struct ConstraintItem {
   std::string type;
   std::string name;          // for messages; may be empty
@@ -69,6 +80,15 @@ struct ConstraintItem {
   CameraParams camera;
   bool up_to_root_translation = false;
   std::string role;          // upper_body_edit; empty = "lower_body"
+  // Inequality and direction items.
+  double height = 0.0;               // floor: y >= height (m)
+  std::vector<double> normal;        // half_space: [3], normalised by compile
+  double offset = 0.0;               // half_space: n . x >= offset (m, along the unit normal)
+  JointRef relative_to;              // half_space: n . (x_j - x_ref) >= offset when set (index >= 0 or a name)
+  std::vector<double> lower, upper;  // box: `min`, `max` ([A] or one number); speed_limit: `max` in upper
+  double min_speed = 0.01;           // tangent: velocity along the direction >= this (metres per frame)
+  double min_width = 0.05;           // facing: hip-difference component that orients the body >= this (m)
+  bool score_only = false;           // measured by the metrics, never imposed: compile() emits no rows
   int line = 0;              // YAML line of the item (0 = unknown), for messages
 
   bool hard() const { return variance == 0.0; }
@@ -83,8 +103,16 @@ struct ConstraintSpec {
   std::string item_label(int index) const;
 };
 
-// Every item type compile() understands, in documentation order.
+// The item types that compile to equality rows (A x = y), in documentation order.
 const std::vector<std::string>& constraint_types();
+// Types that compile to inequality rows only (G x <= h): floor, half_space, box, speed_limit.
+const std::vector<std::string>& inequality_constraint_types();
+// Direction types (equality rows plus one inequality row per frame): tangent, facing.
+const std::vector<std::string>& direction_constraint_types();
+// All of the above: what a spec may name.
+const std::vector<std::string>& all_constraint_types();
+bool is_inequality_type(const std::string& type);
+bool is_direction_type(const std::string& type);
 
 // Parses a spec from YAML text: either a list of items or a map with key
 // `constraints:`. Syntax, unknown keys (with "did you mean"), bad axes, negative

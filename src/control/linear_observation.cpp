@@ -10,6 +10,8 @@
 #include <set>
 
 #include "control/camera_rows.h"
+#include "control/directions.h"
+#include "control/projection_solver.h"
 #include "core/error.h"
 #include "data/skeleton.h"
 
@@ -33,11 +35,15 @@ std::string list_text(const std::vector<int>& v, size_t max_items = 8) {
   return s;
 }
 
-// Rows under construction.
+// Rows under construction: equalities (A, y) and inequalities (G, h).
 struct RowSink {
   std::vector<Eigen::Triplet<double>> entries;
   std::vector<double> y, variance;
   std::vector<int> item;
+  std::vector<Eigen::Triplet<double>> g_entries;
+  std::vector<double> h, g_variance;
+  std::vector<int> g_item;
+  std::vector<DirectionProbe> directions;
   int row(int item_index, double target, double var) {
     y.push_back(target);
     variance.push_back(var);
@@ -45,6 +51,14 @@ struct RowSink {
     return static_cast<int>(y.size()) - 1;
   }
   void add(int r, int col, double value) { entries.emplace_back(r, col, value); }
+  // g x <= bound
+  int g_row(int item_index, double bound, double var) {
+    h.push_back(bound);
+    g_variance.push_back(var);
+    g_item.push_back(item_index);
+    return static_cast<int>(h.size()) - 1;
+  }
+  void g_add(int r, int col, double value) { g_entries.emplace_back(r, col, value); }
 };
 
 // Compiles one item; every failure names the spec source, the item and the key.
@@ -57,6 +71,15 @@ class ItemCompiler {
 
   void compile() {
     const std::string& type = it_.type;
+    if (it_.score_only && !is_direction_type(type))
+      fail_key("score_only", fmt::format("only tangent and facing items can be score_only (their angle error is "
+                                         "scored without imposing them); {} items always constrain", type));
+    if (type == "floor") return floor();
+    if (type == "half_space") return half_space();
+    if (type == "box") return box();
+    if (type == "speed_limit") return speed_limit();
+    if (type == "tangent") return tangent();
+    if (type == "facing") return facing();
     if (type == "keyframe") return selection(/*frames_required=*/true, /*joints_default_all=*/false);
     if (type == "trajectory") return selection(false, false);
     if (type == "planar_root") return planar_root();
@@ -101,6 +124,31 @@ class ItemCompiler {
       out.push_back(j);
     }
     return out;
+  }
+
+  int resolve(const JointRef& r, const char* key) const {
+    int j = r.index;
+    if (!r.name.empty()) {
+      try {
+        j = sk_.joint_index(r.name);
+      } catch (const UserError& e) {
+        fail_key(key, e.what());
+      }
+    } else if (j < 0 || j >= J_) {
+      fail_key(key, fmt::format("joint {} is out of range 0..{} (skeleton '{}')", j, J_ - 1, sk_.name));
+    }
+    return j;
+  }
+
+  // The joints of a skeleton role (floor: toes; facing: face), named in messages.
+  std::vector<int> role_joints(const std::string& role, const char* why) const {
+    try {
+      return sk_.role(role);
+    } catch (const UserError& e) {
+      fail_key("joints", fmt::format("{} items default to the skeleton role '{}' ({}), which skeleton '{}' lacks: "
+                                     "name the joints",
+                                     it_.type, role, why, sk_.name));
+    }
   }
 
   std::vector<int> frames(bool required) const {
@@ -307,6 +355,202 @@ class ItemCompiler {
         }
   }
 
+  // ------------------------------------------------------------ inequalities
+
+  // Per-axis bounds: one number for every axis, or one per axis.
+  std::vector<double> per_axis(const std::vector<double>& v, int A, const char* key) const {
+    if (v.size() == 1) return std::vector<double>(A, v[0]);
+    if (static_cast<int>(v.size()) != A)
+      fail_key(key, fmt::format("expected one number or one per axis ({} axes), got {}", A, v.size()));
+    return v;
+  }
+
+  // y >= height for the item's joints (default the toes): -y <= -height.
+  void floor() {
+    auto js = it_.joints.empty() ? role_joints("toes", "the joints that touch the floor") : joints(false);
+    for (int t : frames(false))
+      for (int j : js) {
+        int r = sink_.g_row(index_, -it_.height, it_.variance);
+        sink_.g_add(r, LinearObservation::index(t, j, 1, J_), -1.0);
+      }
+  }
+
+  // n . (x_j - x_ref) >= offset with n the unit normal: -n . x_j (+ n . x_ref) <= -offset.
+  void half_space() {
+    auto js = joints(false);
+    Eigen::Vector3d n(it_.normal[0], it_.normal[1], it_.normal[2]);
+    n.normalize();
+    const int ref = it_.relative_to.set() ? resolve(it_.relative_to, "relative_to") : -1;
+    for (int j : js)
+      if (j == ref)
+        fail_key("relative_to", fmt::format("joint {} ('{}') is both constrained and the reference; the row would be "
+                                            "0 >= offset", j, sk_.joint_names[j]));
+    for (int t : frames(false))
+      for (int j : js) {
+        int r = sink_.g_row(index_, -it_.offset, it_.variance);
+        for (int c = 0; c < 3; ++c) {
+          if (n[c] == 0.0) continue;
+          sink_.g_add(r, LinearObservation::index(t, j, c, J_), -n[c]);
+          if (ref >= 0) sink_.g_add(r, LinearObservation::index(t, ref, c, J_), n[c]);
+        }
+      }
+  }
+
+  // min <= x <= max per axis: -x <= -min, x <= max.
+  void box() {
+    auto js = joints(false);
+    auto as = axes();
+    const int A = static_cast<int>(as.size());
+    std::vector<double> lo = it_.lower.empty() ? std::vector<double>{} : per_axis(it_.lower, A, "min");
+    std::vector<double> hi = it_.upper.empty() ? std::vector<double>{} : per_axis(it_.upper, A, "max");
+    for (int a = 0; a < A && !lo.empty() && !hi.empty(); ++a)
+      if (lo[a] > hi[a])
+        fail_key("min", fmt::format("min {} is above max {} on axis {}: the box is empty", lo[a], hi[a],
+                                    kAxisNames[as[a]]));
+    for (int t : frames(false))
+      for (int j : js)
+        for (int a = 0; a < A; ++a) {
+          const int col = LinearObservation::index(t, j, as[a], J_);
+          if (!lo.empty()) sink_.g_add(sink_.g_row(index_, -lo[a], it_.variance), col, -1.0);
+          if (!hi.empty()) sink_.g_add(sink_.g_row(index_, hi[a], it_.variance), col, 1.0);
+        }
+  }
+
+  // |x[t+1] - x[t]| <= max per axis, for every listed transition t -> t+1.
+  void speed_limit() {
+    if (T_ < 2) fail_key("type", fmt::format("a speed limit needs at least 2 frames, the clip has {}", T_));
+    auto js = joints(false);
+    auto as = axes();
+    const int A = static_cast<int>(as.size());
+    auto vmax = per_axis(it_.upper, A, "max");
+    std::vector<int> fs;
+    if (it_.frames.kind == FrameSelection::Kind::unset) {
+      for (int t = 0; t + 1 < T_; ++t) fs.push_back(t);
+    } else {
+      fs = frames(false);
+      if (it_.frames.kind == FrameSelection::Kind::all) fs.pop_back();  // transitions t -> t+1
+      for (int t : fs)
+        if (t + 1 >= T_)
+          fail_key("frames", fmt::format("frame {} starts no transition: speed frames are t of x[t+1] - x[t], "
+                                         "at most {}", t, T_ - 2));
+    }
+    for (int t : fs)
+      for (int j : js)
+        for (int a = 0; a < A; ++a)
+          for (double sign : {1.0, -1.0}) {
+            int r = sink_.g_row(index_, vmax[a], it_.variance);
+            sink_.g_add(r, LinearObservation::index(t + 1, j, as[a], J_), sign);
+            sink_.g_add(r, LinearObservation::index(t, j, as[a], J_), -sign);
+          }
+  }
+
+  // ------------------------------------------------------------ directions
+
+  // Unit directions of a tangent/facing item per frame: from `values` ([F, A] or [A])
+  // or from the source motion through `measure(frame)`.
+  template <class Measure>
+  std::vector<Eigen::VectorXd> directions(const std::vector<int>& fs, int A, const char* what, Measure measure) const {
+    const int F = static_cast<int>(fs.size());
+    int shape = targets({{F, A}, {A}}, what);
+    std::vector<Eigen::VectorXd> out;
+    for (int f = 0; f < F; ++f) {
+      Eigen::VectorXd u(A);
+      if (shape < 0) {
+        u = measure(fs[f]);
+        if (u.norm() < 1e-6)
+          fail_key("from_source", fmt::format("the source motion has no {} at frame {} (length {:.2e}); give "
+                                              "'values' or pick frames where it is defined", what, fs[f], u.norm()));
+      } else {
+        for (int a = 0; a < A; ++a) u[a] = value(shape == 0 ? static_cast<size_t>(f) * A + a : static_cast<size_t>(a));
+        if (u.norm() < 1e-9)
+          fail_key("values", fmt::format("the direction at frame {} is zero; give a non-zero vector", fs[f]));
+      }
+      out.push_back(u.normalized());
+    }
+    return out;
+  }
+
+  // The joint's velocity (tangent_stencil) is parallel to u: e . v = 0 for every e
+  // orthogonal to u (equality rows), and u . v >= min_speed (one inequality row),
+  // which fixes the sense and keeps the direction defined.
+  void tangent() {
+    if (T_ < 2) fail_key("type", fmt::format("a tangent needs at least 2 frames, the clip has {}", T_));
+    std::vector<int> js = it_.joints.empty() ? std::vector<int>{sk_.root()} : joints(false);
+    if (js.size() != 1)
+      fail_key("joints", fmt::format("a tangent item controls one joint's velocity, got {} joints; use one item per joint",
+                                     js.size()));
+    const int j = js[0];
+    auto fs = frames(true);
+    std::vector<int> as = it_.axes.empty() ? std::vector<int>{0, 2} : axes();
+    const int A = static_cast<int>(as.size());
+    auto us = directions(fs, A, "velocity direction", [&](int t) {
+      Eigen::VectorXd v = Eigen::VectorXd::Zero(A);
+      for (auto [f, w] : tangent_stencil(t, T_))
+        for (int a = 0; a < A; ++a) v[a] += w * source(f, j, as[a], "from_source");
+      return v;
+    });
+    for (size_t k = 0; k < fs.size(); ++k) {
+      const int t = fs[k];
+      const Eigen::VectorXd& u = us[k];
+      const auto stencil = tangent_stencil(t, T_);
+      Eigen::MatrixXd E = orthogonal_complement(u);
+      for (Eigen::Index e = 0; e < E.cols(); ++e) {
+        int r = sink_.row(index_, 0.0, it_.variance);
+        for (auto [f, w] : stencil)
+          for (int a = 0; a < A; ++a)
+            if (E(a, e) != 0.0) sink_.add(r, LinearObservation::index(f, j, as[a], J_), w * E(a, e));
+      }
+      int r = sink_.g_row(index_, -it_.min_speed, it_.variance);
+      for (auto [f, w] : stencil)
+        for (int a = 0; a < A; ++a)
+          if (u[a] != 0.0) sink_.g_add(r, LinearObservation::index(f, j, as[a], J_), -w * u[a]);
+      sink_.directions.push_back({index_, false, t, j, -1, as, u});
+    }
+  }
+
+  // The body faces f (x, z): with a = x_right - x_left and forward = (a_z, -a_x)
+  // (directions.h), forward is parallel to f when a . f = 0 (equality row) and
+  // forward . f = a_z f_x - a_x f_z >= min_width (inequality row) fixes its sense.
+  void facing() {
+    std::vector<int> js;
+    if (it_.joints.empty()) {
+      auto face = role_joints("face", "right hip, left hip, ...");
+      if (face.size() < 2) fail_key("joints", "the skeleton role 'face' needs at least the two hips [right, left]");
+      js = {face[0], face[1]};
+    } else {
+      js = joints(false);
+    }
+    if (js.size() != 2)
+      fail_key("joints", fmt::format("a facing item takes two joints [right, left] (the hips), got {}", js.size()));
+    const int right = js[0], left = js[1];
+    auto fs = frames(true);
+    auto fw = directions(fs, 2, "facing direction", [&](int t) {
+      Eigen::VectorXd v(2);
+      const double ax = source(t, right, 0, "from_source") - source(t, left, 0, "from_source");
+      const double az = source(t, right, 2, "from_source") - source(t, left, 2, "from_source");
+      v << az, -ax;
+      return v;
+    });
+    for (size_t k = 0; k < fs.size(); ++k) {
+      const int t = fs[k];
+      const double fx = fw[k][0], fz = fw[k][1];
+      int r = sink_.row(index_, 0.0, it_.variance);  // a . f = 0
+      auto both = [&](auto&& add, int row, int c, double coef) {
+        if (coef == 0.0) return;
+        add(row, LinearObservation::index(t, right, c, J_), coef);
+        add(row, LinearObservation::index(t, left, c, J_), -coef);
+      };
+      auto eq = [&](int row, int col, double v) { sink_.add(row, col, v); };
+      auto ineq = [&](int row, int col, double v) { sink_.g_add(row, col, v); };
+      both(eq, r, 0, fx);
+      both(eq, r, 2, fz);
+      int g = sink_.g_row(index_, -it_.min_width, it_.variance);  // a_x f_z - a_z f_x <= -min_width
+      both(ineq, g, 0, fz);
+      both(ineq, g, 2, -fx);
+      sink_.directions.push_back({index_, true, t, right, left, {0, 2}, fw[k]});
+    }
+  }
+
   const ConstraintSpec& spec_;
   int index_;
   const ConstraintItem& it_;
@@ -335,8 +579,16 @@ LinearObservation compile(const ConstraintSpec& spec, int frames, const Skeleton
                           const float* source_motion) {
   if (frames < 1) fail("{}: cannot compile constraints for a clip of {} frames", spec.source, frames);
   RowSink sink;
-  for (int i = 0; i < static_cast<int>(spec.items.size()); ++i)
-    ItemCompiler(spec, i, frames, skeleton, source_motion, sink).compile();
+  for (int i = 0; i < static_cast<int>(spec.items.size()); ++i) {
+    if (!spec.items[i].score_only) {
+      ItemCompiler(spec, i, frames, skeleton, source_motion, sink).compile();
+      continue;
+    }
+    // Checked and compiled like any item, but only its direction probes are kept.
+    RowSink scratch;
+    ItemCompiler(spec, i, frames, skeleton, source_motion, scratch).compile();
+    sink.directions.insert(sink.directions.end(), scratch.directions.begin(), scratch.directions.end());
+  }
 
   LinearObservation obs;
   obs.frames = frames;
@@ -349,9 +601,79 @@ LinearObservation compile(const ConstraintSpec& spec, int frames, const Skeleton
   obs.y = Eigen::Map<Eigen::VectorXd>(sink.y.data(), m);
   obs.variance = Eigen::Map<Eigen::VectorXd>(sink.variance.data(), m);
   obs.item_of_row = std::move(sink.item);
+  const int p = static_cast<int>(sink.h.size());
+  obs.G.resize(p, obs.dim());
+  obs.G.setFromTriplets(sink.g_entries.begin(), sink.g_entries.end());
+  obs.G.makeCompressed();
+  obs.h = Eigen::Map<Eigen::VectorXd>(sink.h.data(), p);
+  obs.g_variance = Eigen::Map<Eigen::VectorXd>(sink.g_variance.data(), p);
+  obs.item_of_g_row = std::move(sink.g_item);
+  obs.directions = std::move(sink.directions);
   for (int i = 0; i < static_cast<int>(spec.items.size()); ++i) obs.item_labels.push_back(spec.item_label(i));
   check_hard_rows(obs);
+  if (p > 0) check_feasible(obs);
   return obs;
+}
+
+void check_feasible(const LinearObservation& obs) {
+  if (obs.inequalities() == 0) return;
+  // Feasibility does not depend on the metric; the Euclidean one is the cheapest.
+  // Soft rows cannot make a set infeasible, so only the hard ones are solved.
+  LinearObservation hard = obs;
+  std::vector<int> keep_a, keep_g;
+  for (int r = 0; r < obs.rows(); ++r)
+    if (obs.is_hard(r)) keep_a.push_back(r);
+  for (int r = 0; r < obs.inequalities(); ++r)
+    if (obs.is_hard_inequality(r)) keep_g.push_back(r);
+  if (keep_g.empty()) return;
+  auto select = [](const Eigen::SparseMatrix<double, Eigen::RowMajor>& M, const std::vector<int>& rows, int cols) {
+    std::vector<Eigen::Triplet<double>> t;
+    for (size_t k = 0; k < rows.size(); ++k)
+      for (Eigen::SparseMatrix<double, Eigen::RowMajor>::InnerIterator it(M, rows[k]); it; ++it)
+        t.emplace_back(static_cast<int>(k), static_cast<int>(it.col()), it.value());
+    Eigen::SparseMatrix<double, Eigen::RowMajor> out(static_cast<int>(rows.size()), cols);
+    out.setFromTriplets(t.begin(), t.end());
+    out.makeCompressed();
+    return out;
+  };
+  hard.A = select(obs.A, keep_a, obs.dim());
+  hard.G = select(obs.G, keep_g, obs.dim());
+  hard.y.resize(keep_a.size());
+  hard.variance = Eigen::VectorXd::Zero(keep_a.size());
+  hard.item_of_row.clear();
+  for (size_t k = 0; k < keep_a.size(); ++k)
+    hard.y[k] = obs.y[keep_a[k]], hard.item_of_row.push_back(obs.item_of_row[keep_a[k]]);
+  hard.h.resize(keep_g.size());
+  hard.g_variance = Eigen::VectorXd::Zero(keep_g.size());
+  hard.item_of_g_row.clear();
+  for (size_t k = 0; k < keep_g.size(); ++k)
+    hard.h[k] = obs.h[keep_g[k]], hard.item_of_g_row.push_back(obs.item_of_g_row[keep_g[k]]);
+  ProjectionSolver solver(KinematicMetric::euclidean(obs.joints));
+  solver.set_observation(hard);
+  solver.project(Eigen::MatrixXd::Zero(obs.dim(), 1));  // throws UserError naming the items when infeasible
+}
+
+LinearObservation inequality_rows(const LinearObservation& obs) {
+  LinearObservation out;
+  out.frames = obs.frames;
+  out.joints = obs.joints;
+  out.source = obs.source;
+  out.item_labels = obs.item_labels;
+  out.A = obs.G;
+  out.y = obs.h;
+  out.variance = obs.g_variance;
+  out.item_of_row = obs.item_of_g_row;
+  out.G.resize(0, obs.dim());
+  return out;
+}
+
+LinearObservation without_inequalities(const LinearObservation& obs) {
+  LinearObservation out = obs;
+  out.G.resize(0, obs.dim());
+  out.h.resize(0);
+  out.g_variance.resize(0);
+  out.item_of_g_row.clear();
+  return out;
 }
 
 std::vector<std::vector<int>> coupled_row_groups(const LinearObservation& obs, bool only_hard) {
@@ -446,12 +768,16 @@ LinearObservation affine_to_model(const LinearObservation& obs, const std::array
            kAxisNames[c], axis_scale[c], axis_offset[c]);
   LinearObservation out = obs;
   // y_m = y - A offset: accumulate row by row while scaling the entries (A_m = A diag(scale)).
-  for (int r = 0; r < out.A.outerSize(); ++r)
-    for (Eigen::SparseMatrix<double, Eigen::RowMajor>::InnerIterator it(out.A, r); it; ++it) {
-      const int c = static_cast<int>(it.col() % 3);
-      out.y[r] -= it.value() * axis_offset[c];
-      it.valueRef() *= axis_scale[c];
-    }
+  auto move_inside = [&](Eigen::SparseMatrix<double, Eigen::RowMajor>& M, Eigen::VectorXd& b) {
+    for (int r = 0; r < M.outerSize(); ++r)
+      for (Eigen::SparseMatrix<double, Eigen::RowMajor>::InnerIterator it(M, r); it; ++it) {
+        const int c = static_cast<int>(it.col() % 3);
+        b[r] -= it.value() * axis_offset[c];
+        it.valueRef() *= axis_scale[c];
+      }
+  };
+  move_inside(out.A, out.y);
+  if (out.inequalities() > 0) move_inside(out.G, out.h);  // G_m = G diag(scale), h_m = h - G offset
   return out;
 }
 

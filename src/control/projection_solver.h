@@ -1,6 +1,9 @@
 // The ProjFlow correction (eq. (7)): x' = x_hat + R^-1 A^T (A R^-1 A^T + Sigma)^-1 (y - A x_hat),
 // solved per group of coupled rows without forming anything of size d x d, with
-// the factorisations cached while A and Sigma stay the same.
+// the factorisations cached while A and Sigma stay the same. With inequality rows
+// (G x <= h, issue 20) it is the R-metric projection onto the equality set
+// intersected with the half-spaces: an exact QP over the inequality rows alone, in
+// the range space the equality factorisations leave (control/active_set_qp.h).
 #pragma once
 #include <Eigen/Dense>
 #include <cstdint>
@@ -41,6 +44,21 @@ namespace mc {
 //
 // Batches. project() works on the transpose (samples x d), where one coordinate
 // of all samples is contiguous, so every group's update is a dense GEMM.
+//
+// Inequalities. The equality groups stay as they are. After the equality update
+// x_e, what is left is min |x - x_e|_P^-1 over G x <= h with P = R^-1 - R^-1 A^T
+// M^-1 A R^-1 the equality projection's posterior covariance: P is block-diagonal
+// over the equality groups (and R^-1 on blocks no row touches), so two inequality
+// rows interact only when they touch a common group or block. Such "components" of
+// inequality rows keep U = P G_c^T (stored per row as pieces on the blocks it
+// reaches, built from the groups' W and gains: nothing new is factorised) and
+// M' = G_c U + Sigma_c, sparse (rows meet only through blocks they share; its
+// pattern and the pieces' layout are built once per structure, and a variance update
+// only recomputes their numbers). A projection reads G x_e - h for every column and runs the
+// dual active-set QP on (M', h - G x_e) only for the columns with a violated row;
+// then x = x_e + U lambda. Exact: hard equalities hold to solver precision, hard
+// inequalities to ~1e-11 of their residual, whatever the warm start. A hard row
+// that the hard equalities and other hard rows rule out is a UserError naming them.
 class ProjectionSolver {
  public:
   explicit ProjectionSolver(KinematicMetric metric);
@@ -54,9 +72,17 @@ class ProjectionSolver {
   void update_variance(const Eigen::VectorXd& variance);
   void update_targets(const Eigen::VectorXd& y);
 
-  // eq. (7)-(8) for every column of x_hat (d x S).
-  Eigen::MatrixXd project(const Eigen::MatrixXd& x_hat) const;
-  void project_in_place(Eigen::Ref<Eigen::MatrixXd> x) const;
+  // Active inequality rows (global rows of G) per sample column, carried from one
+  // projection of a column to the next (ProjFlow: from one sampling step to the
+  // next) to warm-start the QP. Empty: cold start.
+  struct ActiveSets {
+    std::vector<std::vector<int>> columns;
+  };
+
+  // eq. (7)-(8) for every column of x_hat (d x S); with inequality rows, the QP.
+  // `warm` (optional) is read as the start and overwritten with the final active sets.
+  Eigen::MatrixXd project(const Eigen::MatrixXd& x_hat, ActiveSets* warm = nullptr) const;
+  void project_in_place(Eigen::Ref<Eigen::MatrixXd> x, ActiveSets* warm = nullptr) const;
 
   const KinematicMetric& metric() const { return metric_; }
   const LinearObservation& observation() const { return obs_; }
@@ -69,6 +95,10 @@ class ProjectionSolver {
   int distinct_factors() const;  // factorisations the current groups use
   int largest_group() const;
   int jittered_groups() const;
+  int inequality_components() const { return static_cast<int>(components_.size()); }
+  int largest_component() const;                          // inequality rows in the largest one
+  int64_t qp_solves() const { return qp_solves_; }          // (component, column) QPs run so far
+  int64_t qp_iterations() const { return qp_iterations_; }  // rows added or dropped in them
 
  private:
   // What a group's system depends on: its rows relative to its blocks.
@@ -85,10 +115,45 @@ class ProjectionSolver {
     std::string structure;    // key of A_c relative to the blocks (no variances)
     int factor = -1;          // index into factors_
   };
+  // Inequality rows coupled through P (see the class comment).
+  struct Piece {
+    int block = 0;          // frame * 3 + axis
+    Eigen::VectorXd value;  // J entries of P g^T on that block
+  };
+  // What refresh_component recomputes numbers for, fixed when the structure is built.
+  struct RowEntry {  // an entry a of g at joint `joint` of the row's piece `piece`
+    int piece = 0, joint = 0;
+    double a = 0;
+  };
+  struct RowGroup {  // an equality group the row reaches
+    int group = 0;
+    std::vector<std::pair<int, double>> gain_cols;  // (column of the group's gain_t, entry of g)
+    std::vector<int> piece_of_block;                // the group's local block -> the row's piece
+  };
+  struct MTerm {  // M'(k, l) (and (l, k)) += a * u[l][piece].value[joint], k <= l
+    int slot = 0, mirror = 0;  // value indices of (k, l) and (l, k) in m
+    int l = 0, piece = 0, joint = 0;
+    double a = 0;
+  };
+  struct Component {
+    std::vector<int> g_rows;                     // global rows of G, ascending
+    std::vector<int> groups;                     // equality groups (indices into groups_) the rows reach
+    std::vector<std::vector<Piece>> u;           // per row: P g^T, pieces sorted by block
+    std::vector<std::vector<RowEntry>> entries;  // per row
+    std::vector<std::vector<RowGroup>> reach;    // per row
+    std::vector<MTerm> terms;                    // M' = G_c U, entry by entry (pairs sharing a block)
+    std::vector<int> diagonal;                   // value index of (k, k) in m
+    Eigen::SparseMatrix<double> m;               // M' = G_c P G_c^T + Sigma_c, sparse, both triangles
+    Eigen::VectorXd scale;                       // per row g R^-1 g^T + variance: the dependency test's scale
+  };
   void build_structure();
+  void build_components();
+  void build_component(Component& c);  // its pieces, entries and M' pattern (structure only)
+  void refresh_component(Component& c);
   int factor_for(const Group& g);  // finds or computes the factor of g's structure + variances
   void factorise(Factor& f, const std::vector<double>& variance);
   bool same_operator(const LinearObservation& obs) const;
+  [[noreturn]] void fail_infeasible(const Component& c, const std::vector<int>& local_rows) const;
 
   KinematicMetric metric_;
   LinearObservation obs_;
@@ -96,7 +161,11 @@ class ProjectionSolver {
   std::vector<Group> groups_;
   std::vector<Factor> factors_;
   std::unordered_map<std::string, int> factor_index_;  // structure + variances -> factor
+  std::vector<int> group_of_block_;     // (frame, axis) block -> equality group holding it, -1
+  std::vector<Component> components_;
+  std::vector<int> component_of_group_;  // equality group -> the component whose rows reach it, -1
   int64_t factorizations_ = 0, structure_builds_ = 0;
+  mutable int64_t qp_solves_ = 0, qp_iterations_ = 0;
 };
 
 // Dense reference for tests: forms R and A as dense matrices and solves eq. (7)

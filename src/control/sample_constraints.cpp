@@ -56,6 +56,19 @@ ConstraintSpec with_explicit_targets(const ConstraintSpec& spec, int frames, con
   for (size_t i = 0; i < spec.items.size(); ++i) {
     ConstraintItem& it = out.items[i];
     if (!it.from_source && it.type != "upper_body_edit") continue;
+    if (is_direction_type(it.type)) {  // the unit directions compile() measured on the source
+      int F = 0, A = 0;
+      it.values.data.clear();
+      for (const auto& p : obs.directions) {
+        if (p.item != static_cast<int>(i)) continue;
+        ++F;
+        A = static_cast<int>(p.target.size());
+        for (Eigen::Index k = 0; k < p.target.size(); ++k) it.values.data.push_back(p.target[k]);
+      }
+      it.values.shape = {F, A};
+      it.from_source = false;
+      continue;
+    }
     std::vector<int> rows;
     for (int r = 0; r < obs.rows(); ++r)
       if (obs.item_of_row[r] == static_cast<int>(i)) rows.push_back(r);

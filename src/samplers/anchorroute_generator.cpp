@@ -5,7 +5,9 @@
 #include <memory>
 
 #include "control/anchors.h"
+#include "control/projection_solver.h"
 #include "core/error.h"
+#include "data/skeleton.h"
 #include "core/trained_runs.h"
 #include "models/anchor_adapters.h"
 #include "models/token_prior.h"
@@ -23,7 +25,8 @@ class AnchorRouteGenerator : public MotionGenerator {
  public:
   AnchorRouteGenerator(std::shared_ptr<TokenPrior> prior, std::shared_ptr<AnchorAdapterModule> adapter,
                        AnchorAdapterConfig adapter_cfg, std::string adapter_run, TmdSamplerConfig sampler,
-                       RouteSolverConfig route, int route_batch, AnchorGuidanceConfig guidance = {})
+                       RouteSolverConfig route, int route_batch, AnchorGuidanceConfig guidance = {},
+                       ExactProjectionConfig exact = {})
       : prior_(std::move(prior)),
         adapter_(std::move(adapter)),
         acfg_(std::move(adapter_cfg)),
@@ -31,13 +34,16 @@ class AnchorRouteGenerator : public MotionGenerator {
         sampler_(std::move(sampler)),
         route_(std::move(route)),
         route_batch_(route_batch),
-        guidance_(std::move(guidance)) {}
+        guidance_(std::move(guidance)),
+        exact_(std::move(exact)) {}
 
   GeneratedMotions generate(const std::vector<ControlTask>& tasks, uint64_t seed) override {
     const int64_t N = tasks.size(), s = prior_->stride();
     std::vector<std::string> captions;
     std::vector<int> lengths;
     std::vector<AnchorSet> sets;
+    std::vector<LinearObservation> extras;  // non-anchor items' rows (RouteSolver's extra residuals)
+    bool any_extra = false;
     int64_t max_tokens = 1;
     for (const auto& t : tasks) {
       captions.push_back(t.caption);
@@ -53,6 +59,13 @@ class AnchorRouteGenerator : public MotionGenerator {
              "planar_root constraints (use generator tmd for unconstrained text-to-motion)",
              t.id);
       sets.push_back(std::move(a));
+      try {
+        extras.push_back(extra_residual_rows(t.spec, t.length, prior_->skeleton(),
+                                             t.source.empty() ? nullptr : t.source.data()));
+      } catch (const UserError& e) {
+        fail("generator anchorroute: task '{}': {}", t.id, e.what());
+      }
+      any_extra = any_extra || extras.back().rows() > 0 || extras.back().inequalities() > 0;
       max_tokens = std::max<int64_t>(max_tokens, (t.length + s - 1) / s);
     }
     auto t0 = std::chrono::steady_clock::now();
@@ -99,7 +112,9 @@ class AnchorRouteGenerator : public MotionGenerator {
         std::vector<AnchorSet> bs(sets.begin() + start, sets.begin() + start + B);
         std::vector<int> bl(lengths.begin() + start, lengths.begin() + start + B);
         for (int64_t i = 0; i < B; ++i) ids[i].narrow(0, 0, r.tokens[start + i].size(0)).copy_(r.tokens[start + i]);
-        auto res = solver.refine(ids.to(prior_->device()), bs, seed ^ (0x5eedull + start), bl);
+        std::vector<LinearObservation> be;
+        if (any_extra) be.assign(extras.begin() + start, extras.begin() + start + B);
+        auto res = solver.refine(ids.to(prior_->device()), bs, seed ^ (0x5eedull + start), bl, be);
         auto w = res.world.to(torch::kCPU);
         for (int64_t i = 0; i < B; ++i) {
           out.world[start + i].zero_();
@@ -111,8 +126,43 @@ class AnchorRouteGenerator : public MotionGenerator {
       out.notes.push_back(fmt::format("RS{} control error: {:.4f} m", route_.steps,
                                       mean_control_error(out.world, make_anchor_batch(sets)).item<double>()));
     }
+    if (exact_.enabled) project_exactly(tasks, lengths, sets, out);
     out.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     return out;
+  }
+
+  // ProjFlow's projection onto each task's whole spec, in world units (the decoded
+  // motion is world metres): the anchors then hold to solver precision.
+  void project_exactly(const std::vector<ControlTask>& tasks, const std::vector<int>& lengths,
+                       const std::vector<AnchorSet>& sets, GeneratedMotions& out) {
+    const Skeleton& sk = prior_->skeleton();
+    ProjectionSolver solver(KinematicMetric::from_config(exact_.metric, sk));
+    auto world = out.world.to(torch::kCPU, torch::kFloat).contiguous();
+    double worst = 0;
+    for (size_t i = 0; i < tasks.size(); ++i) {
+      const auto& t = tasks[i];
+      LinearObservation obs;
+      try {
+        obs = compile(t.spec, lengths[i], sk, t.source.empty() ? nullptr : t.source.data());
+      } catch (const UserError& e) {
+        fail("generator anchorroute: task '{}': {}", t.id, e.what());
+      }
+      if (obs.rows() == 0 && obs.inequalities() == 0) continue;
+      solver.set_observation(obs);
+      float* p = world[static_cast<int64_t>(i)].data_ptr<float>();
+      const int d = obs.dim();
+      Eigen::MatrixXd x(d, 1);
+      for (int k = 0; k < d; ++k) x(k, 0) = p[k];
+      solver.project_in_place(x);
+      for (int k = 0; k < d; ++k) p[k] = static_cast<float>(x(k, 0));
+      Eigen::VectorXd r = obs.A * x.col(0) - obs.y;
+      for (int k = 0; k < obs.rows(); ++k)
+        if (obs.is_hard(k)) worst = std::max(worst, std::abs(r[k]));
+    }
+    out.world = world.to(out.world.device());
+    out.notes.push_back(fmt::format("exact projection ({} metric): max hard residual {:.1e} m, control error {:.2e} m",
+                                    exact_.metric.type, worst,
+                                    mean_control_error(out.world, make_anchor_batch(sets)).item<double>()));
   }
 
   std::string describe() const override {
@@ -123,7 +173,8 @@ class AnchorRouteGenerator : public MotionGenerator {
                        sampler_.steps, sampler_.cfg_scale, a,
                        route_.steps > 0 ? fmt::format("RS{} ({} update, {} basis, {} activity)", route_.steps,
                                                       route_.update, route_.basis, route_.activity)
-                                        : std::string("off"));
+                                        : std::string("off")) +
+           (exact_.enabled ? fmt::format(", then the exact projection ({} metric)", exact_.metric.type) : "");
   }
 
  private:
@@ -135,6 +186,7 @@ class AnchorRouteGenerator : public MotionGenerator {
   RouteSolverConfig route_;
   int route_batch_;
   AnchorGuidanceConfig guidance_;
+  ExactProjectionConfig exact_;
 };
 
 }  // namespace
@@ -151,6 +203,7 @@ void AnchorRouteGeneratorConfig::visit(FieldVisitor& v) {
   v("route", route, "RouteSolver refinement (steps 0 = off; RS100 / RS200 / RS500 and the Table V/VI variants)");
   v("route_batch", route_batch, "motions refined together", at_least(1));
   v("guidance", guidance, "how CFG treats the anchors (defaults: anchors in both passes, no anchor term)");
+  v("exact", exact, "end the decode with ProjFlow's projection onto the task's constraints (issue 20)");
 }
 
 void AnchorRouteGeneratorConfig::dependencies(DependencyVisitor& d) {
@@ -165,7 +218,7 @@ std::unique_ptr<MotionGenerator> AnchorRouteGeneratorConfig::make(const Generato
   if (!run.empty()) {
     auto a = load_anchor_adapter(run, ctx.device);
     return std::make_unique<AnchorRouteGenerator>(a.prior, a.module, a.cfg, run, sampler, route, route_batch,
-                                                  guidance);
+                                                  guidance, exact);
   }
   std::string p = prior_run;
   if (p.empty()) {
@@ -175,7 +228,7 @@ std::unique_ptr<MotionGenerator> AnchorRouteGeneratorConfig::make(const Generato
   auto prior = std::make_shared<TokenPrior>(TokenPrior::load(p, ctx.device));
   if (!prior->is_tmd()) fail("generator anchorroute: '{}' is not a tmd_prior run", p);
   return std::make_unique<AnchorRouteGenerator>(prior, nullptr, AnchorAdapterConfig{}, "", sampler, route,
-                                                route_batch);
+                                                route_batch, AnchorGuidanceConfig{}, exact);
 }
 
 MC_REGISTER_GENERATOR("anchorroute", AnchorRouteGeneratorConfig,

@@ -6,6 +6,7 @@
 #include <string>
 #include <vector>
 
+#include "control/kinematic_metric.h"
 #include "core/config.h"
 #include "core/trained_runs.h"
 #include "models/token_transformer.h"
@@ -36,6 +37,20 @@ struct AnchorGuidanceConfig : Config {
   HookGuidance hooks() const { return {anchors == "both", scale}; }
 };
 
+// `exact:` (issue 20, beyond both papers) ends AnchorRoute's decode with ProjFlow's
+// projection (eq. (7), kinematic metric eq. (11), world units) onto the task's whole
+// constraint spec: anchors, inequalities and direction rows, so anchors hold exactly.
+// Left out of the dumped config while off.
+struct ExactProjectionConfig : Config {
+  bool enabled = false;
+  MetricConfig metric;
+  void visit(FieldVisitor& v) override {
+    v("enabled", enabled, "project the decoded motion onto the task's constraints (anchors exact)");
+    v("metric", metric, "metric R of the projection (eq. (11))");
+  }
+  bool omitted_from_dump() const override { return !enabled; }
+};
+
 struct AnchorRouteGeneratorConfig : GeneratorConfig, DeclaresDependencies {
   std::string adapter_run;
   std::string adapter_config;
@@ -47,6 +62,7 @@ struct AnchorRouteGeneratorConfig : GeneratorConfig, DeclaresDependencies {
   RouteSolverConfig route;
   int route_batch = 16;
   AnchorGuidanceConfig guidance;
+  ExactProjectionConfig exact;
   void visit(FieldVisitor& v) override;
   void dependencies(DependencyVisitor& d) override;
   std::unique_ptr<MotionGenerator> make(const GeneratorContext& ctx) const override;

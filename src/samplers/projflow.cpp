@@ -128,6 +128,11 @@ LinearObservation with_pseudo_rows(const LinearObservation& hard, const PseudoCa
   o.joints = hard.joints;
   o.source = hard.source;
   o.item_labels = hard.item_labels;
+  o.G = hard.G;  // inequalities pass through unchanged (their rows keep their indices)
+  o.h = hard.h;
+  o.g_variance = hard.g_variance;
+  o.item_of_g_row = hard.item_of_g_row;
+  o.directions = hard.directions;
   o.item_labels.push_back("pseudo-observations (eq. (13))");
   const int m0 = hard.rows(), m = m0 + static_cast<int>(step.active.size());
   std::vector<Eigen::Triplet<double>> trip;
@@ -170,7 +175,7 @@ ProjFlowStepper::ProjFlowStepper(const ProjFlowConfig& cfg, const KinematicMetri
 void ProjFlowStepper::project_sample(int64_t id, float* x1, int frames, int k, int steps, double t) {
   auto& st = state_[id];
   const LinearObservation& hard = obs_[id];
-  if (hard.rows() == 0) return;
+  if (hard.rows() == 0 && hard.inequalities() == 0) return;
   if (hard.frames != frames)
     fail("observation of sample {} covers {} frames but the sample has {}", id, hard.frames, frames);
   const int J = hard.joints, d = hard.dim();
@@ -193,9 +198,23 @@ void ProjFlowStepper::project_sample(int64_t id, float* x1, int frames, int k, i
     st.solver->set_observation(hard);
     st.observation_set = true;
   }
-  st.solver->project_in_place(x);  // eqs. (7)-(8)
+  // eqs. (7)-(8); with inequality rows the QP, warm-started from this sample's previous step.
+  if (!warm_start_) st.active_rows.columns.clear();
+  st.solver->project_in_place(x, &st.active_rows);
   xf = x.cast<float>();
   ++projections_;
+}
+
+int64_t ProjFlowStepper::qp_solves() const {
+  int64_t n = 0;
+  for (const auto& st : state_) n += st.solver->qp_solves();
+  return n;
+}
+
+int64_t ProjFlowStepper::qp_iterations() const {
+  int64_t n = 0;
+  for (const auto& st : state_) n += st.solver->qp_iterations();
+  return n;
 }
 
 torch::Tensor ProjFlowStepper::step(const FlowStep& s) {

@@ -101,12 +101,18 @@ class ProjFlowStepper : public FlowStepper {
   // Counters for benchmarks and tests.
   int64_t projections() const { return projections_; }
   double projection_seconds() const { return projection_seconds_; }
+  int64_t qp_solves() const;      // inequality QPs run (group x sample x step)
+  int64_t qp_iterations() const;  // rows added or dropped in them
+  // Warm-start each sample's QP from its previous step's active rows (default on;
+  // off only to measure what the warm start saves: the answer is the same).
+  void set_warm_start(bool on) { warm_start_ = on; }
 
  private:
   struct SampleState {
     std::unique_ptr<ProjectionSolver> solver;
     PseudoCandidates candidates;
     std::vector<int> active;  // pseudo entries in the solver's current observation
+    ProjectionSolver::ActiveSets active_rows;  // active inequality rows after the last step (QP warm start)
     bool observation_set = false;
   };
   void project_sample(int64_t id, float* x1, int frames, int k, int steps, double t);
@@ -117,6 +123,7 @@ class ProjFlowStepper : public FlowStepper {
   std::vector<SampleState> state_;
   int64_t projections_ = 0;
   double projection_seconds_ = 0;
+  bool warm_start_ = true;
 };
 
 // `guidance:` reconstruction guidance (GMD/OmniControl style, reference-facts §4):

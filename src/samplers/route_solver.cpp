@@ -2,11 +2,15 @@
 // updates routed onto anchor-interval bases (AnchorRoute eqs. (24)-(34)).
 #include "samplers/route_solver.h"
 
+#include <algorithm>
+#include <climits>
 #include <cmath>
 #include <random>
 
 #include "core/error.h"
 #include "control/anchor_loss.h"
+#include "data/skeleton.h"
+#include "samplers/task_observation.h"
 
 namespace mc {
 
@@ -66,6 +70,15 @@ std::unique_ptr<torch::optim::Optimizer> make_optimizer(const RouteSolverConfig&
 
 }  // namespace
 
+LinearObservation extra_residual_rows(const ConstraintSpec& spec, int frames, const Skeleton& skeleton,
+                                      const float* source_motion) {
+  ConstraintSpec extra;
+  extra.source = spec.source;
+  for (const auto& it : spec.items)
+    if ((is_inequality_type(it.type) || is_direction_type(it.type)) && !it.score_only) extra.items.push_back(it);
+  return compile(extra, frames, skeleton, source_motion);
+}
+
 RouteSolver::RouteSolver(VqTokenizer tokenizer, RouteSolverConfig cfg) : tok_(std::move(tokenizer)), cfg_(std::move(cfg)) {
   if (!tok_) fail("RouteSolver needs a tokenizer");
 }
@@ -76,18 +89,20 @@ torch::Tensor RouteSolver::decode_world(const torch::Tensor& u) const {  // eq. 
 }
 
 RouteSolverResult RouteSolver::refine(const torch::Tensor& ids, const std::vector<AnchorSet>& anchors, uint64_t seed,
-                                      const std::vector<int>& lengths) const {
+                                      const std::vector<int>& lengths,
+                                      const std::vector<LinearObservation>& extra) const {
   if (ids.dim() != 2) fail("RouteSolver: tokens must be [B, L], got {} dimensions", ids.dim());
   torch::Tensor u0;
   {
     torch::NoGradGuard ng;
     u0 = tok_->quantizer->lookup(ids.to(tok_->codebook().device(), torch::kLong));  // eq. (24)
   }
-  return refine_embeddings(u0, anchors, seed, lengths);
+  return refine_embeddings(u0, anchors, seed, lengths, extra);
 }
 
 RouteSolverResult RouteSolver::refine_embeddings(const torch::Tensor& u0_in, const std::vector<AnchorSet>& anchors,
-                                                 uint64_t seed, const std::vector<int>& lengths_in) const {
+                                                 uint64_t seed, const std::vector<int>& lengths_in,
+                                                 const std::vector<LinearObservation>& extra) const {
   FrozenModule frozen(*tok_);
   const auto device = tok_->codebook().device();
   if (u0_in.dim() != 3 || u0_in.size(2) != tok_->code_dim())
@@ -128,19 +143,82 @@ RouteSolverResult RouteSolver::refine_embeddings(const torch::Tensor& u0_in, con
   len = len.to(device);
   const AnchorBatch batch = make_anchor_batch(anchors, device);
 
+  // The non-anchor items' rows, batched: equality rows (direction items) and the
+  // inequality rows as hinges (control/linear_observation.h, inequality_rows).
+  if (!extra.empty() && static_cast<int64_t>(extra.size()) != B)
+    fail("RouteSolver: {} extra row sets for {} samples", extra.size(), B);
+  BatchedObservation extra_eq, extra_ineq;
+  std::vector<std::pair<int64_t, int>> eq_rows_at, ineq_rows_at;  // (sample, frame) of each stacked row
+  const double extra_weight = cfg_.extra_residuals.weight;
+  bool any_eq = false, any_ineq = false;
+  if (!extra.empty() && extra_weight > 0) {
+    std::vector<LinearObservation> ineq;
+    std::vector<const LinearObservation*> eq_ptr, ineq_ptr;
+    ineq.reserve(extra.size());
+    for (int64_t b = 0; b < B; ++b) {
+      if (extra[b].frames > lengths[b] || extra[b].joints != J)
+        fail("RouteSolver: sample {}: extra rows cover {} frames x {} joints; the sample has {} frames x {} joints", b,
+             extra[b].frames, extra[b].joints, lengths[b], J);
+      any_eq = any_eq || extra[b].rows() > 0;
+      any_ineq = any_ineq || extra[b].inequalities() > 0;
+      ineq.push_back(inequality_rows(extra[b]));
+    }
+    for (int64_t b = 0; b < B; ++b) eq_ptr.push_back(&extra[b]), ineq_ptr.push_back(&ineq[b]);
+    if (any_eq) extra_eq = batch_observations(eq_ptr, T, J, device);
+    if (any_ineq) extra_ineq = batch_observations(ineq_ptr, T, J, device);
+    // Each stacked row's sample and frame (the middle of the frames it touches: a
+    // tangent's stencil t - 1, t + 1 gives t), for the activities below.
+    auto locate = [&](const std::vector<const LinearObservation*>& obs, std::vector<std::pair<int64_t, int>>& out) {
+      for (int64_t b = 0; b < B; ++b)
+        for (int r = 0; r < obs[b]->rows(); ++r) {
+          int lo = INT32_MAX, hi = -1;
+          for (Eigen::SparseMatrix<double, Eigen::RowMajor>::InnerIterator it(obs[b]->A, r); it; ++it) {
+            const int t = static_cast<int>(it.col() / (3 * J));
+            lo = std::min(lo, t), hi = std::max(hi, t);
+          }
+          out.push_back({b, hi < 0 ? 0 : (lo + hi) / 2});
+        }
+    };
+    locate(eq_ptr, eq_rows_at);
+    locate(ineq_ptr, ineq_rows_at);
+  }
+
   const torch::Tensor u0 = u0_in.detach().to(device, torch::kFloat);
   torch::Tensor u = u0.clone().set_requires_grad(true);
   auto opt = make_optimizer(cfg_, u);
   std::mt19937_64 rng(seed);
   const bool route = cfg_.update == "route";
 
-  // Eq. (32)'s input: the largest control error among the anchors at each frame.
+  // The extra rows' residuals |A x - y| and hinges max(0, G x - h) (world units) by
+  // sample and frame: they join the anchor errors in eq. (32), so an interval whose
+  // heading or floor is off is routed like one whose anchors are (the "residual
+  // scaffold" AnchorRoute §5 proposes to extend), not suppressed.
+  std::vector<std::vector<std::pair<int, double>>> extra_at(B);
+  auto refresh_extra = [&](const torch::Tensor& world_detached) {
+    for (auto& v : extra_at) v.clear();
+    auto add = [&](const BatchedObservation& rows, const std::vector<std::pair<int64_t, int>>& at, bool hinge) {
+      auto r = rows.residual(world_detached);
+      r = (hinge ? torch::relu(r) : r.abs()).to(torch::kCPU, torch::kDouble).contiguous();
+      const double* p = r.data_ptr<double>();
+      for (size_t k = 0; k < at.size(); ++k) extra_at[at[k].first].push_back({at[k].second, p[k]});
+    };
+    if (any_eq) add(extra_eq, eq_rows_at, false);
+    if (any_ineq) add(extra_ineq, ineq_rows_at, true);
+  };
+  // Eq. (32)'s input: the largest control error among the anchors at each frame, and
+  // an extra row's residual at both ends of the interval holding its frame.
   auto activities = [&](const torch::Tensor& err_cpu, int64_t b) {
     auto e = err_cpu.accessor<float, 2>();
     std::vector<double> frame_error(lengths[b], 0.0);
     for (size_t n = 0; n < anchors[b].anchors.size(); ++n) {
       const int t = anchors[b].anchors[n].frame;
       frame_error[t] = std::max(frame_error[t], static_cast<double>(e[b][n]));
+    }
+    const auto& bd = bases[b].boundaries;
+    for (auto [t, v] : extra_at[b]) {
+      auto hi = std::upper_bound(bd.begin(), bd.end(), t);
+      const size_t k1 = std::min<size_t>(std::max<ptrdiff_t>(hi - bd.begin(), 1), bd.size() - 1);
+      for (size_t k : {k1 - 1, k1}) frame_error[bd[k]] = std::max(frame_error[bd[k]], v);
     }
     auto a = interval_activities(bases[b], frame_error, cfg_.rho_f);
     if (cfg_.activity == "shuffled")
@@ -174,6 +252,7 @@ RouteSolverResult RouteSolver::refine_embeddings(const torch::Tensor& u0_in, con
       world = decode_world(u);
     }
     torch::Tensor err = anchor_errors(world.detach(), batch).to(torch::kCPU).contiguous();
+    if (any_eq || any_ineq) refresh_extra(world.detach());
     if (step == 0) {
       if (!torch::isfinite(world).all().item<bool>())
         fail("RouteSolver: the decoded tokens are not finite; check the tokenizer checkpoint");
@@ -199,6 +278,14 @@ RouteSolverResult RouteSolver::refine_embeddings(const torch::Tensor& u0_in, con
       objective = objective + cfg_.gamma_sm * (d2.pow(2).sum({2, 3}) * m2).sum(1) / (len - 2);
     }
     if (cfg_.gamma_tr > 0) objective = objective + cfg_.gamma_tr * (u - u0).pow(2).sum({1, 2});
+    if (any_eq) {  // direction rows: squared residuals, per sample
+      auto r2 = extra_eq.residual(world).pow(2);
+      objective = objective + extra_weight * torch::zeros({B}, r2.options()).index_add(0, extra_eq.sample, r2);
+    }
+    if (any_ineq) {  // inequality rows: squared hinge max(0, g x - h)^2
+      auto h2 = torch::relu(extra_ineq.residual(world)).pow(2);
+      objective = objective + extra_weight * torch::zeros({B}, h2.options()).index_add(0, extra_ineq.sample, h2);
+    }
     if (cfg_.gamma_feas > 0) {  // eq. (28)
       auto r = world.select(2, 0);
       auto v = ((r.slice(1, 1) - r.slice(1, 0, T - 1)).pow(2).sum(-1) + 1e-12).sqrt();

@@ -9,6 +9,7 @@
 #include <torch/torch.h>
 
 #include "control/anchors.h"
+#include "control/linear_observation.h"
 #include "control/route_basis.h"
 #include "core/config.h"
 #include "models/vq_tokenizer.h"
@@ -22,6 +23,21 @@ namespace mc {
 //   shuffled residual activity            activity: shuffled
 //   transport-only / slope-only basis     basis: transport / slope
 //   quadratic / cubic basis               basis: quadratic / cubic
+// `route.extra_residuals:` terms added to eq. (26) for a task's non-anchor items
+// (issue 20; AnchorRoute §5's "tangent or orientation cues"): weight * (sum of the
+// squared residuals of their equality rows + sum of max(0, g x - h)^2 over their
+// inequality rows), in world units. Direction items (tangent, facing) give both
+// kinds, inequality items (floor, box, ...) the hinge only. Left out of the dumped
+// config at its default, so configs written before it keep their hashes.
+struct RouteExtraConfig : Config {
+  double weight = 1.0;
+  void visit(FieldVisitor& v) override {
+    v("weight", weight, "weight of the direction and inequality residuals beside the anchor loss (untuned)",
+      at_least(0.0));
+  }
+  bool omitted_from_dump() const override { return weight == 1.0; }
+};
+
 struct RouteSolverConfig : Config {
   int steps = 200;  // RS100 / RS200 / RS500
   std::string update = "route";
@@ -40,6 +56,7 @@ struct RouteSolverConfig : Config {
   double gamma_feas = 0.0;
   double v_max = 0.25;
   bool record_history = true;
+  RouteExtraConfig extra_residuals;
 
   void visit(FieldVisitor& v) override {
     v("steps", steps, "refinement steps (RS100 / RS200 / RS500); 0 = decode the tokens only", in_range(0, 100000));
@@ -69,6 +86,7 @@ struct RouteSolverConfig : Config {
     v("gamma_feas", gamma_feas, "weight of the root-velocity hinge eq. (28) (paper default 0: off)", at_least(0.0));
     v("v_max", v_max, "root speed limit of eq. (28), metres per frame", positive<double>());
     v("record_history", record_history, "record the control error and objective before every step");
+    v("extra_residuals", extra_residuals, "residuals of direction and inequality items beside the anchors (issue 20)");
   }
 };
 
@@ -83,6 +101,12 @@ struct RouteSolverResult {
   std::vector<double> objective_history;  // eq. (26) summed over samples, steps entries
 };
 
+// The rows RouteSolver adds for a spec's non-anchor items (inequality and direction
+// items; score_only items give none): compile() of those items alone, world units.
+// An observation without rows when the spec has none.
+LinearObservation extra_residual_rows(const ConstraintSpec& spec, int frames, const Skeleton& skeleton,
+                                      const float* source_motion);
+
 // Holds a frozen tokenizer; refine() never changes its parameters or mode.
 class RouteSolver {
  public:
@@ -93,11 +117,15 @@ class RouteSolver {
   // L * stride; each at least 3 and at least the set's frames). `seed` drives the
   // shuffled-activity permutations only. UserError on shape mismatches or a
   // non-finite objective / decoded motion.
+  // `extra` (empty, or one per sample): world-unit rows of the sample's non-anchor
+  // items (extra_residual_rows), added to the objective as RouteExtraConfig says.
   RouteSolverResult refine(const torch::Tensor& ids, const std::vector<AnchorSet>& anchors, uint64_t seed = 0,
-                           const std::vector<int>& lengths = {}) const;
+                           const std::vector<int>& lengths = {},
+                           const std::vector<LinearObservation>& extra = {}) const;
   // The same from continuous code vectors u0 [B, L, D].
   RouteSolverResult refine_embeddings(const torch::Tensor& u0, const std::vector<AnchorSet>& anchors,
-                                      uint64_t seed = 0, const std::vector<int>& lengths = {}) const;
+                                      uint64_t seed = 0, const std::vector<int>& lengths = {},
+                                      const std::vector<LinearObservation>& extra = {}) const;
 
   // The decoder D of eq. (25): u [B, L, D] -> world joints [B, L * stride, J, 3].
   torch::Tensor decode_world(const torch::Tensor& u) const;

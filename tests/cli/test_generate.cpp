@@ -2,6 +2,7 @@
 // randomly initialised prior: runs end to end, hard constraints hold, bad input exits 2.
 #include <catch2/catch.hpp>
 
+#include <fstream>
 #include <regex>
 
 #include "data/motion_set.h"
@@ -50,5 +51,59 @@ TEST_CASE("motionctl generate: every application config runs and satisfies its h
                                          prior, fx, dir.path.string()));
   CHECK(joint.exit_code == 2);
   CHECK(joint.output.find("99") != std::string::npos);
+  CHECK(!fs::exists(dir.path / "bad.h5"));
+}
+
+TEST_CASE("motionctl generate: the floor application and every inequality / direction example spec", "[projflow][cli][inequality]") {
+  TempDir dir("generate_ineq");
+  const std::string fx = (dir.path / "fx.h5").string(), prior = (dir.path / "prior").string();
+  REQUIRE(run_motionctl(fmt::format("fixture configs/data/smoke.yaml output={} fixture.num_clips=30", fx)).exit_code == 0);
+  write_random_prior_run(prior, 196);
+  auto value = [](const std::string& out, const std::string& pattern) {
+    std::smatch match;
+    REQUIRE(std::regex_search(out, match, std::regex(pattern + " ([0-9.e+-]+)")));
+    return std::stod(match[1]);
+  };
+  {
+    const std::string out = (dir.path / "floor.h5").string();
+    auto r = run_motionctl(fmt::format(
+        "generate configs/control/floor_smoke.yaml generator.prior.run_dir={} generator.sampler.steps=4 data.path={} "
+        "data.num_samples=3 output={} run.threads=1",
+        prior, fx, out));
+    INFO(r.output);
+    REQUIRE(r.exit_code == 0);
+    CHECK(value(r.output, "max hard residual") <= 1e-4);
+    CHECK(value(r.output, "max hard violation") <= 1e-5);
+    // every stored sample keeps its floor item (score re-reads it from the file)
+    MotionSet m = read_motion_file(out);
+    for (size_t i = 0; i < m.size(); ++i)
+      for (int t = 0; t < m.lengths[i]; ++t)
+        for (int j : m.skeleton.role("toes")) CHECK(m.at(i, t, j)[1] >= -1e-5);
+  }
+  for (std::string spec : {"floor", "half_space", "box", "speed_limit", "tangent", "facing"}) {
+    const std::string out = (dir.path / (spec + ".h5")).string();
+    auto r = run_motionctl(fmt::format(
+        "generate configs/control/keyframes_smoke.yaml custom.constraints=configs/control/specs/{}.yaml "
+        "generator.prior.run_dir={} generator.sampler.steps=4 data.path={} data.num_samples=2 output={} run.threads=1",
+        spec, prior, fx, out));
+    INFO(spec << ": " << r.output);
+    REQUIRE(r.exit_code == 0);
+    CHECK(value(r.output, "max hard violation") <= 1e-5);
+    if (spec == "tangent" || spec == "facing") CHECK(value(r.output, "mean angle error") <= 0.05);
+  }
+  // an infeasible spec is exit 2 naming its items, and writes nothing
+  const std::string bad = (dir.path / "bad.yaml").string();
+  {
+    std::ofstream f(bad);
+    f << "- {type: floor, name: ground}\n"
+         "- {type: keyframe, name: sunk, joints: [l_foot], frames: [3], axes: y, values: [[[-0.2]]]}\n";
+  }
+  auto r = run_motionctl(fmt::format("generate configs/control/keyframes_smoke.yaml custom.constraints={} "
+                                     "generator.prior.run_dir={} data.path={} data.num_samples=1 output={}/bad.h5",
+                                     bad, prior, fx, dir.path.string()));
+  CHECK(r.exit_code == 2);
+  CHECK(r.output.find("infeasible") != std::string::npos);
+  CHECK(r.output.find("'ground'") != std::string::npos);
+  CHECK(r.output.find("'sunk'") != std::string::npos);
   CHECK(!fs::exists(dir.path / "bad.h5"));
 }

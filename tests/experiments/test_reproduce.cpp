@@ -292,6 +292,22 @@ TEST_CASE("motionctl reproduce: reduced smoke replay of the AnchorRoute and cros
   }
   CHECK(means["cross/benchmark:root3d/anchorroute"]["control_error"] <
         means["cross/benchmark:root3d/anchorkv"]["control_error"]);
+  // Issue 20 rows: the hard floor holds, exact AnchorRoute meets its anchors, imposed
+  // directions are met where the plain row (same tasks, scored only) misses them.
+  for (std::string row : {"root3d/projflow_floor", "body/projflow_floor"}) {
+    INFO(row);
+    CHECK(means["cross/benchmark:" + row]["floor_penetration"] <= 1e-5);
+    CHECK(means["cross/benchmark:" + row]["control_error"] <= 1e-4);
+  }
+  for (std::string row : {"root3d/anchorroute_exact", "root3d/anchorkv_exact", "planar/anchorroute_exact",
+                          "body/anchorroute_exact"}) {
+    INFO(row);
+    CHECK(means["cross/benchmark:" + row]["control_error"] <= 1e-4);
+  }
+  CHECK(means["cross/benchmark:dir/projflow"]["direction_error"] < 1.0);
+  CHECK(means["cross/benchmark:dir/projflow"]["direction_error"] <
+        means["cross/benchmark:dir/projflow_plain"]["direction_error"]);
+  CHECK(means["cross/benchmark:dir/anchorroute_exact"]["direction_error"] < 1.0);
 }
 
 TEST_CASE("profile.trained_configs: malformed entries and missing files are exit 2 naming the entry",

@@ -9,7 +9,9 @@
 
 #include "control/anchors.h"
 #include "control/control_task.h"
+#include "control/linear_observation.h"
 #include "core/error.h"
+#include "eval/observation_errors.h"
 #include "models/anchor_adapters.h"
 #include "control/anchor_loss.h"
 #include "samplers/motion_generator.h"
@@ -213,4 +215,64 @@ TEST_CASE("AnchorRoute end to end: on held-out clips AnchorKV beats its zeroed-f
   }
   double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   WARN("AnchorRoute end to end: " << secs << " s");
+}
+
+TEST_CASE("AnchorRoute + exact projection: anchors, floor and directions hold on a tiny TMD (issue 20)",
+          "[anchorkv][inequality]") {
+  TempDir tmp("anchorroute_exact");
+  const std::string data = (tmp.path / "fx.h5").string(), root = (tmp.path / "runs").string();
+  REQUIRE(run_motionctl(fmt::format("fixture configs/data/smoke.yaml output={} fixture.num_clips=40", data))
+              .exit_code == 0);
+  std::vector<std::string> common = {"data.path=" + data, "run.root=" + root, "run.threads=1", "run.log_every=50",
+                                     "run.checkpoint_every=1000"};
+  auto ov = [&](std::vector<std::string> more) {
+    auto v = common;
+    v.insert(v.end(), more.begin(), more.end());
+    return v;
+  };
+  auto tok = run_train("configs/tokenizer/vq_tiny.yaml", ov({"optim.steps=20", "optim.warmup=5", "model.width=32",
+                                                             "model.code_dim=32", "model.codebook_size=32"}));
+  auto tmd = run_train("configs/tmd/tmd_tiny.yaml",
+                       ov({"optim.steps=10", "optim.warmup=2", "model.width=64", "model.heads=2",
+                           "model.text_width=32", "model.text_ff=64", "model.eval_t=[0.5]",
+                           "model.tokenizer_run=" + tok.run_dir.string()}));
+  auto ds = MotionDataset::load(data);
+  const MotionSet& set = ds->set();
+  // Root-3D anchors with headings and facings from the ground truth, plus a floor.
+  auto tasks = protocol_tasks("anchors",
+                              "families: [root_3d]\nanchor_counts: [4, 8]\n"
+                              "directions: {tangent: true, facing: true}\n",
+                              set, {0, 1, 2, 3}, 3);
+  ConstraintItem floor;
+  floor.type = "floor";
+  floor.name = "ground";
+  for (auto& t : tasks) t.spec.items.push_back(floor);
+  const std::string base = fmt::format("prior_run: {}\nsampler: {{steps: 4, batch_size: 4}}\nroute: {{steps: 5}}\n",
+                                       tmd.run_dir.string());
+  auto plain = make_generator(base)->generate(tasks, 9);
+  auto gen = make_generator(base + "exact: {enabled: true}\n");
+  CHECK(gen->describe().find("exact projection") != std::string::npos);
+  auto exact = gen->generate(tasks, 9);
+  auto w = exact.world.contiguous();
+  auto p = plain.world.contiguous();
+  double worst_eq = 0, worst_ineq = 0, worst_angle = 0, plain_angle = 0;
+  int probes = 0;
+  for (size_t i = 0; i < tasks.size(); ++i) {
+    LinearObservation obs = compile(tasks[i].spec, tasks[i].length, set.skeleton, tasks[i].source.data());
+    const float* x = w[static_cast<int64_t>(i)].data_ptr<float>();
+    Eigen::VectorXd xv(obs.dim());
+    for (int k = 0; k < obs.dim(); ++k) xv[k] = x[k];
+    worst_eq = std::max(worst_eq, (obs.A * xv - obs.y).cwiseAbs().maxCoeff());
+    worst_ineq = std::max(worst_ineq, max_inequality_violation(obs, x));
+    for (double a : direction_errors(obs, x)) worst_angle = std::max(worst_angle, a), ++probes;
+    for (double a : direction_errors(obs, p[static_cast<int64_t>(i)].data_ptr<float>())) plain_angle += a;
+  }
+  INFO("exact: hard residual " << worst_eq << " m, violation " << worst_ineq << ", worst angle " << worst_angle
+                               << " deg over " << probes << " probes; plain mean angle " << plain_angle / probes);
+  REQUIRE(probes > 0);
+  CHECK(worst_eq < 1e-4);     // float32 world coordinates
+  CHECK(worst_ineq < 1e-5);
+  CHECK(worst_angle < 0.1);
+  CHECK(control_error(exact, tasks, set.skeleton) < 1e-4);
+  CHECK(control_error(plain, tasks, set.skeleton) > 1e-3);  // RS5 alone is not exact
 }

@@ -13,6 +13,7 @@
 #include "models/flow_prior_test_util.h"
 #include "samplers/motion_generator.h"
 #include "samplers/projflow.h"
+#include "samplers/task_observation.h"
 #include "control/control_test_util.h"
 #include "data/data_test_util.h"
 #include "test_util.h"
@@ -328,4 +329,64 @@ TEST_CASE("spatial protocols: OmniControl densities, lifting cameras, applicatio
   CHECK_THROWS_AS(as_protocol(protocol_of("protocol: {type: omnicontrol, joints: [0, 40]}").protocol)
                       .make_tasks(data, clips, 1),
                   UserError);
+}
+
+TEST_CASE("ProjFlow with inequality and direction items: rows hold through the sampler, warm = cold start",
+          "[projflow][inequality]") {
+  TempDir dir("projflow_ineq");
+  write_random_prior_run(dir.path / "prior");
+  const Skeleton& sk = humanml3d_skeleton();
+  const int T = 24;
+  std::mt19937_64 rng(12);
+  const std::vector<std::string> specs = {
+      "- {type: floor}\n- {type: keyframe, joints: [pelvis], frames: [0, 20], from_source: true}",
+      "- {type: speed_limit, joints: [pelvis], axes: xz, max: 0.02}\n- {type: box, joints: [l_wrist], min: [-0.3, 0.5, -0.3], max: [0.3, 1.2, 0.3]}",
+      "- {type: half_space, joints: [l_wrist, r_wrist], normal: [0, 1, 0], offset: 0.0, relative_to: head}",
+      "- {type: tangent, joints: [pelvis], frames: [5, 15], values: [1, 0]}\n- {type: facing, frames: [10], values: [0, -1]}\n"
+      "- {type: floor, variance: 0.0001}"};
+  std::vector<ControlTask> tasks;
+  for (size_t i = 0; i < specs.size(); ++i) {
+    ControlTask t;
+    t.id = "task" + std::to_string(i);
+    t.caption = "a person walks forward";
+    t.length = T - static_cast<int>(i % 2);
+    t.source = random_motion(rng, t.length, sk);
+    float lowest = INFINITY;  // the floor convention of the data: nothing below y = 0
+    for (size_t k = 1; k < t.source.size(); k += 3) lowest = std::min(lowest, t.source[k]);
+    for (size_t k = 1; k < t.source.size(); k += 3) t.source[k] -= lowest;
+    t.spec = parse_constraint_spec_yaml(specs[i], "task" + std::to_string(i));
+    tasks.push_back(t);
+  }
+  auto gen = make_generator(fmt::format("generator:\n  type: projflow\n  prior: {{run_dir: {}}}\n"
+                                        "  sampler: {{steps: 10, batch_size: 4}}\n",
+                                        (dir.path / "prior").string()));
+  GeneratedMotions g = gen->generate(tasks, 3);
+  for (size_t i = 0; i < tasks.size(); ++i) {
+    INFO(specs[i]);
+    auto m = sample_of(g, static_cast<int>(i), tasks[i].length);
+    LinearObservation obs = compile(tasks[i].spec, tasks[i].length, sk, tasks[i].source.data());
+    CHECK(hard_residual(tasks[i].spec, tasks[i].length, tasks[i].source, m.data()) <= 1e-4);
+    Eigen::VectorXd x(obs.dim());
+    for (int k = 0; k < obs.dim(); ++k) x[k] = m[k];
+    Eigen::VectorXd v = obs.G * x - obs.h;
+    for (int r = 0; r < obs.inequalities(); ++r)
+      if (obs.is_hard_inequality(r)) CHECK(v[r] <= 1e-5);
+  }
+  // The same run without the warm start: the same samples (the QP's answer does not depend on it).
+  FlowPrior prior = FlowPrior::load((dir.path / "prior").string());
+  std::vector<std::string> captions;
+  std::vector<int> lengths;
+  for (auto& t : tasks) captions.push_back(t.caption), lengths.push_back(t.length);
+  FlowSamplerConfig sc;
+  sc.steps = 10;
+  sc.batch_size = 4;
+  auto obs = model_observations(prior, tasks);
+  ProjFlowConfig cfg;
+  ProjFlowStepper warm(cfg, KinematicMetric::from_config(cfg.metric, sk), obs), cold(cfg, KinematicMetric::from_config(cfg.metric, sk), obs);
+  cold.set_warm_start(false);
+  auto a = sample_flow(prior, captions, lengths, sc, 5, &warm);
+  auto b = sample_flow(prior, captions, lengths, sc, 5, &cold);
+  CHECK((a.world - b.world).abs().max().item<double>() < 1e-4);
+  CHECK(warm.qp_solves() > 0);
+  CHECK(warm.qp_iterations() <= cold.qp_iterations());
 }

@@ -11,6 +11,9 @@
 #include "core/config.h"
 #include "core/error.h"
 #include "control/anchor_loss.h"
+#include "data/skeleton.h"
+#include "eval/metrics.h"
+#include "eval/observation_errors.h"
 #include "samplers/route_solver.h"
 
 using namespace mc;
@@ -220,4 +223,58 @@ TEST_CASE("RouteSolver timing at full tokenizer size", "[.][routesolver_bench]")
   printf("RouteSolver: B=%d, %d steps: %.2f s = %.4f s per sample-step (threads %d); error %.4f -> %.4f\n", B, steps, s,
          s / (B * steps), torch::get_num_threads(), r.initial_control_error, r.final_control_error);
   CHECK(std::isfinite(r.final_control_error));
+}
+
+TEST_CASE("RouteSolver: direction residuals turn the joint toward its tangent targets", "[routesolver][inequality]") {
+  // Root anchors and ground-plane headings at the anchor frames, both read off the
+  // decoded motion of other random tokens; the same refinement with and without the
+  // extra residuals (weight 0 keeps only eq. (26)).
+  Problem p = make_problem(AnchorFamily::root_3d, 4);
+  const int64_t B = p.ids.size(0), T = p.ids.size(1) * 4;
+  torch::Tensor target;
+  {
+    torch::NoGradGuard ng;
+    torch::manual_seed(1);
+    p.ids = torch::randint(16, {B, p.ids.size(1)}, torch::kLong);
+    auto other = torch::randint(16, {B, p.ids.size(1)}, torch::kLong);
+    target = p.vq->denormalize(p.vq->decode(other).view({B, T, 22, 3})).contiguous();
+  }
+  std::vector<LinearObservation> extra;
+  for (int64_t b = 0; b < B; ++b) {
+    ConstraintSpec spec = anchors_to_spec(p.anchors[b]);
+    ConstraintItem tangent;
+    tangent.type = "tangent";
+    tangent.joints = {JointRef{0, ""}};
+    tangent.frames.kind = FrameSelection::Kind::list;
+    tangent.frames.list = p.anchors[b].times();
+    tangent.from_source = true;
+    tangent.min_speed = 0.0;
+    spec.items.push_back(tangent);
+    extra.push_back(extra_residual_rows(spec, static_cast<int>(T), humanml3d_skeleton(), target[b].data_ptr<float>()));
+    REQUIRE(extra.back().rows() == 4);  // one perpendicular row per anchor frame (xz)
+  }
+  auto angle = [&](const torch::Tensor& world) {
+    double sum = 0;
+    int n = 0;
+    auto w = world.contiguous();
+    for (int64_t b = 0; b < B; ++b)
+      for (double a : direction_errors(extra[b], w[b].data_ptr<float>())) sum += a, ++n;
+    return sum / n;
+  };
+  RouteSolverConfig cfg;
+  cfg.steps = 200;
+  cfg.extra_residuals.weight = 0.0;
+  auto plain = RouteSolver(p.vq, cfg).refine(p.ids, p.anchors, 0, {}, extra);
+  cfg.extra_residuals.weight = 10.0;
+  auto with = RouteSolver(p.vq, cfg).refine(p.ids, p.anchors, 0, {}, extra);
+  INFO("angle error: plain " << angle(plain.world) << " deg, with directions " << angle(with.world) << " deg");
+  // A random decoder, 200 routed steps: measured 85 -> 67 degrees; well clear of noise.
+  CHECK(angle(with.world) < angle(plain.world) - 10.0);
+  CHECK(with.final_control_error < with.initial_control_error);  // the anchors still pull
+  CHECK(torch::isfinite(with.world).all().item<bool>());
+  // the default weight is left out of the dumped config
+  RouteSolverConfig defaults;
+  CHECK(dump_config(defaults).find("extra_residuals") == std::string::npos);
+  // one extra set per sample
+  CHECK_THROWS_AS(RouteSolver(p.vq, cfg).refine(p.ids, p.anchors, 0, {}, {extra[0]}), UserError);
 }
