@@ -1,7 +1,8 @@
 // Runs one table row: tasks from the protocol, `repeats` fresh generations,
 // evaluator and control metrics per replicate, cached in a run directory keyed
 // by the resolved generator, protocol and profile and the SHA-1 of the data file
-// and evaluator checkpoint (content, not paths).
+// and evaluator checkpoint (content, not paths), and reused only while the trained
+// components it used still have the weights it recorded (experiments/row_record.h).
 #include <yaml-cpp/yaml.h>
 
 #include <chrono>
@@ -23,9 +24,9 @@
 #include "eval/observation_errors.h"
 #include "experiments/experiment.h"
 #include "experiments/row_evaluator.h"
+#include "experiments/row_record.h"
 #include "samplers/motion_generator.h"
 #include "train/pretrained.h"
-#include "train/dependencies.h"
 #include "train/train_job.h"
 #include "train/trainer.h"
 
@@ -449,9 +450,44 @@ RowResult run_row(const ProfileFile& pf, const TableSpec& table, const RowConfig
   rc.threads = profile.threads;
   rc.device = profile.device;
   std::string yaml = dump_config(key);
-  RunDir run = RunDir::open(rc, yaml, {}, sanitize_name(row.id) + "-" + config_hash(key));
+  const std::string run_name = sanitize_name(row.id) + "-" + config_hash(key);
+  RunDir run = RunDir::open(rc, yaml, {}, run_name);
   result.run_dir = run.path().string();
-  if (run.finished() && fs::exists(run.path() / "metrics.h5") && fs::exists(run.path() / "samples.h5")) {
+  // The trained components the row uses as they are now (what is missing or stale is
+  // trained first), each with its weights' SHA-1: the directory's name covers the
+  // row's config, not weights retrained in place.
+  const RowComponents components = resolve_row_components(rr.generator);
+  const ResolvedDependency evaluator = evaluator_component(ev.evaluator_run(), profile.evaluator);
+  const std::string record_note =
+      "a table row: the trained components and the evaluator it was computed with; a replay recomputes it when "
+      "they differ (docs/choices.md, \"Table replay: rows keyed by their weights\")";
+  bool cached = run.finished() && fs::exists(run.path() / "metrics.h5") && fs::exists(run.path() / "samples.h5");
+  if (cached) {
+    const RowReuse reuse = check_row(run.path(), components, evaluator);
+    if (reuse.state == RowReuse::State::recompute) {
+      // Redone where it is, from a cleared directory: an interrupted recomputation
+      // leaves an unfinished row, never the old numbers beside a new record.
+      RunConfig again = rc;
+      again.force = true;
+      run = RunDir::open(again, yaml, {}, run_name);
+      run.log().info(fmt::format("row {}: {} was computed on {}: recomputing it", row.id, run.path().string(),
+                                 fmt::join(reuse.reasons, "; ")));
+      cached = false;
+    } else if (reuse.state == RowReuse::State::adopt) {
+      write_row_record(run.path(), components, evaluator,
+                       fmt::format("adopted {}: {}; the row predates row records, and every component finished "
+                                   "before it did, so it is taken as computed on the weights they had then",
+                                   utc_timestamp(), record_note));
+      run.log().info(fmt::format(
+          "warning: row {}: {} has no record of the weights it was computed with (computed before rows kept one); "
+          "every component it uses finished before it did, so it is taken as computed on today's {}; if one of them "
+          "was retrained to other weights in between, delete {} to recompute the row",
+          row.id, run.path().string(), describe_dependencies(components.all), run.path().string()));
+    } else if (!fs::exists(run.path() / kDependencyRecord)) {
+      write_row_record(run.path(), components, evaluator, record_note);  // a legacy row with no component
+    }
+  }
+  if (cached) {
     result.values = read_metric_results(run.path().string());
     result.samples = read_row_samples((run.path() / "samples.h5").string());
     alias_foot_skating(result, table.table.foot_skating);
@@ -462,21 +498,15 @@ RowResult run_row(const ProfileFile& pf, const TableSpec& table, const RowConfig
       std::getline(in, result.generator_description);
       while (std::getline(in, line)) result.notes.push_back(line);
     }
-    if (fs::exists(run.path() / "components.txt")) {
-      std::ifstream in(run.path() / "components.txt");
-      for (std::string line; std::getline(in, line);)
-        if (!line.empty()) result.components.push_back(line);
-    }
+    result.components = read_row_components(run.path());
     return result;
   }
 
   std::vector<ControlTask> tasks = ev.tasks(as_protocol(rr.protocol), key.num_samples, profile.seed);
   GeneratorContext ctx;
   ctx.device = setup_torch(rc);
-  take_trained_runs();
-  resolve_dependencies(rr.generator);
   std::unique_ptr<MotionGenerator> gen = as_generator(rr.generator).make(ctx);
-  result.components = take_trained_runs();
+  result.components = components.trained;
   result.generator_description = gen->describe();
   run.log().info(fmt::format("row {}: {} on {} tasks x {} replicates", row.id, result.generator_description,
                              tasks.size(), key.repeats));
@@ -541,6 +571,7 @@ RowResult run_row(const ProfileFile& pf, const TableSpec& table, const RowConfig
   std::string comps;
   for (auto& c : result.components) comps += c + "\n";
   write_file_atomic(run.path() / "components.txt", comps);
+  write_row_record(run.path(), components, evaluator, record_note);  // before DONE: a finished row has one
   write_metric_results(run.path().string(), result.values);
   write_row_samples((run.path() / "samples.h5").string(), result.samples);
   alias_foot_skating(result, table.table.foot_skating);
