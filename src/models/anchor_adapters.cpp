@@ -616,7 +616,7 @@ LoadedAnchorAdapter load_anchor_adapter(const std::string& run_dir, torch::Devic
   out.run_dir = run_dir;
   out.cfg = run.model.as<AnchorAdapterConfig>();
   std::string tmd_run;
-  run.read_meta(kMetaFile, [&](const YAML::Node& meta) { tmd_run = meta["tmd_run"].as<std::string>(); });
+  run.read_meta(kMetaFile, [&](const YAML::Node& meta) { tmd_run = run.dependency(meta["tmd_run"].as<std::string>()); });
   out.prior = std::make_shared<TokenPrior>(TokenPrior::load(tmd_run, device));
   out.module = make_anchor_adapter(out.cfg, out.prior->net()->transformer, out.prior->stride());
   run.load_weights(*out.module);

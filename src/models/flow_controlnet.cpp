@@ -131,7 +131,7 @@ FlowControlNet FlowControlNet::load(const std::string& run_dir, torch::Device de
       run_dir, {"ControlNet", {"flow_controlnet"}, {"controlnet_meta.yaml"},
                 "train one with `motionctl train configs/prior/flow_controlnet_tiny.yaml`"});
   std::string base_run;
-  run.read_meta("controlnet_meta.yaml", [&](const YAML::Node& meta) { base_run = meta["base_run"].as<std::string>(); });
+  run.read_meta("controlnet_meta.yaml", [&](const YAML::Node& meta) { base_run = run.dependency(meta["base_run"].as<std::string>()); });
   FlowControlNet n = around(FlowPrior::load(base_run, device));
   n.run_dir_ = run_dir;
   run.load_weights(**n.branch_, fmt::format("its base prior '{}'", base_run));

@@ -516,7 +516,7 @@ TokenPrior TokenPrior::load(const std::string& run_dir, torch::Device device) {
   int64_t K = 0;
   run.read_meta("prior_meta.yaml", [&](const YAML::Node& meta) {
     p.t_max_ = meta["t_max"].as<int>();
-    tokenizer_run = meta["tokenizer_run"].as<std::string>();
+    tokenizer_run = run.dependency(meta["tokenizer_run"].as<std::string>());
     K = meta["codebook_size"].as<int64_t>();
   });
   p.tok_ = load_vq_tokenizer(tokenizer_run, device);

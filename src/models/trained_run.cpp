@@ -68,6 +68,16 @@ void TrainedRun::read_meta(const std::string& file, const std::function<void(con
   }
 }
 
+std::string TrainedRun::dependency(const std::string& recorded) const {
+  namespace fs = std::filesystem;
+  fs::path r = fs::path(recorded).lexically_normal();
+  if (r.filename().empty()) r = r.parent_path();  // a trailing separator
+  const fs::path beside = dir.parent_path().parent_path() / r.parent_path().filename() / r.filename();
+  std::error_code ec;
+  if (!r.parent_path().filename().empty() && fs::is_directory(beside, ec)) return beside.string();
+  return recorded;
+}
+
 std::vector<std::string> TrainedRun::vocab_words() const {
   std::vector<std::string> words;
   std::ifstream f(output("vocab.txt"));

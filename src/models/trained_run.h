@@ -40,6 +40,12 @@ struct TrainedRun {
   // outputs/<file> as YAML; `read` pulls the values out, and a missing key or a
   // wrong type there is a UserError saying the file is corrupt.
   void read_meta(const std::string& file, const std::function<void(const YAML::Node&)>& read) const;
+  // A dependency's run directory as this run recorded it in its outputs (where the
+  // dependency was when this run trained, e.g. "runs/tokenizer/vq_tiny"). A run tree
+  // moved or installed under another runs root (run.root) carries its dependencies
+  // beside it: <this run's root>/<experiment>/<name> is used when it exists, the
+  // recorded path otherwise (so the loader's error names what was recorded).
+  std::string dependency(const std::string& recorded) const;
   // outputs/vocab.txt, one word a line.
   std::vector<std::string> vocab_words() const;
   // Reads final.pt (or `file`) into `module`; UserError naming the file when it is

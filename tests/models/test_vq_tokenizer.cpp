@@ -219,7 +219,7 @@ TEST_CASE("vq_tiny trains end to end, beats the mean pose and loads back", "[tok
   std::string data = (t.path / "fx.h5").string();
   REQUIRE(run_motionctl(fmt::format("fixture configs/data/smoke.yaml output={} fixture.num_clips=60", data)).exit_code ==
           0);
-  std::string common = fmt::format("configs/tokenizer/vq_tiny.yaml data.path={} run.root={} run.threads=2",
+  std::string common = fmt::format("configs/tokenizer/vq_tiny.yaml data.path={} run.root={} run.threads=1",
                                    data, t.path.string());
   // The trainer's weight EMA would desynchronise the encoder from its EMA codebook.
   auto refused = run_motionctl(fmt::format("train {} run.name=ema optim.ema_decay=0.9 optim.steps=5", common));
