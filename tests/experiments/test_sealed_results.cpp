@@ -26,11 +26,7 @@ using Catch::Matchers::Contains;
 
 namespace {
 
-std::string bytes_of(const fs::path& p) {
-  std::ifstream f(p, std::ios::binary);
-  return std::string(std::istreambuf_iterator<char>(f), {});
-}
-
+// Whole files as bytes: slurp (test_util.h) reads them, put_bytes writes them back.
 void put_bytes(const fs::path& p, const std::string& b) { std::ofstream(p, std::ios::binary | std::ios::trunc) << b; }
 
 // Flips one bit of `stride`-spaced bytes past the seal block, one at a time, and
@@ -38,7 +34,7 @@ void put_bytes(const fs::path& p, const std::string& b) { std::ofstream(p, std::
 // truncation; the file is restored afterwards. Returns how many flips were tried.
 template <class Read>
 int check_flips_refused(const fs::path& file, int flips, Read read, const std::vector<std::string>& fragments) {
-  const std::string good = bytes_of(file);
+  const std::string good = slurp(file);
   REQUIRE(good.size() > kH5SealBlock);
   const size_t stride = std::max<size_t>(1, (good.size() - kH5SealBlock) / flips);
   int tried = 0;
@@ -62,7 +58,7 @@ int check_flips_refused(const fs::path& file, int flips, Read read, const std::v
 // What a file looks like to a reader when written before seals: no seal in the
 // first 512 bytes (libhdf5 still finds the superblock after the user block).
 void drop_seal(const fs::path& file) {
-  std::string b = bytes_of(file);
+  std::string b = slurp(file);
   std::fill(b.begin(), b.begin() + kH5SealBlock, '\0');
   put_bytes(file, b);
   REQUIRE(check_h5_seal(file.string(), "test file") == H5Seal::absent);
@@ -119,7 +115,7 @@ TEST_CASE("metrics.h5 is sealed: round trip, a changed byte refused naming the f
   const fs::path file = dir.path / "metrics.h5";
   write_metric_results(dir.path.string(), some_values());
   CHECK(check_h5_seal(file.string(), "metrics file") == H5Seal::valid);
-  CHECK(bytes_of(file).rfind("motionctl-h5-seal 1\n", 0) == 0);
+  CHECK(slurp(file).rfind("motionctl-h5-seal 1\n", 0) == 0);
   CHECK(read_metric_results(dir.path.string()) == some_values());  // bit for bit
 
   check_flips_refused(
@@ -150,7 +146,7 @@ TEST_CASE("metrics.h5 is sealed: round trip, a changed byte refused naming the f
   CHECK(read_metric_results(dir.path.string()) == some_values());
   CHECK(read_eval_embeddings(dir.path.string()).captions == e.captions);
   // An unsealed file libhdf5 cannot make sense of is exit 2 naming it, not a crash.
-  std::string b = bytes_of(file);
+  std::string b = slurp(file);
   std::fill(b.begin() + kH5SealBlock, b.begin() + kH5SealBlock + 64, '\x5a');  // the superblock
   put_bytes(file, b);
   CHECK_THAT(user_error_of([&] { read_metric_results(dir.path.string()); }),
@@ -186,7 +182,7 @@ TEST_CASE("samples.h5 is sealed; a damaged row cache is a cache miss naming the 
   CHECK(ok.values == some_values());
   CHECK(ok.samples.task_ids == s.task_ids);
   for (const fs::path& file : {metrics, samples}) {
-    const std::string good = bytes_of(file);
+    const std::string good = slurp(file);
     std::string bad = good;
     bad[good.size() / 2] = static_cast<char>(bad[good.size() / 2] ^ 0x01);
     put_bytes(file, bad);
@@ -280,9 +276,9 @@ TEST_CASE("results.h5: a row's unreadable examples.h5 is exit 2 naming it, and n
     CHECK(f.openDataSet("/examples/t|a/gt/lengths").getSpace().getSimpleExtentNpoints() == 2);
   }
   // ... a damaged one stops the write before results.h5 is replaced.
-  const std::string before = bytes_of(out);
+  const std::string before = slurp(out);
   put_bytes(row_dir / "examples.h5", "not an HDF5 file, but long enough to look like one might");
   CHECK_THAT(user_error_of([&] { write_results_h5(out.string(), {t}, "ci"); }),
              Contains((row_dir / "examples.h5").string()) && Contains("delete the row's run directory"));
-  CHECK(bytes_of(out) == before);
+  CHECK(slurp(out) == before);
 }
