@@ -42,7 +42,8 @@ struct EvalSampleRecord {
 // metrics.h5 also holds /embeddings, /samples and the record's attributes.
 void write_eval_results(const std::string& dir, const std::map<std::string, std::vector<double>>& values,
                         const std::map<std::string, Replicated>& summaries, const EvalSampleRecord& record);
-// The embeddings metrics.h5 stores (/embeddings); UserError naming the file when absent.
+// The embeddings metrics.h5 stores (/embeddings); UserError naming the file when absent
+// or damaged (read as read_metric_results reads: seal checked, unsealed files probed).
 EvalEmbeddings read_eval_embeddings(const std::string& dir);
 
 }  // namespace mc

@@ -15,6 +15,7 @@
 #include "control/linear_observation.h"
 #include "core/atomic_file.h"
 #include "core/error.h"
+#include "core/h5_seal.h"
 #include "eval/observation_errors.h"
 
 namespace mc {
@@ -183,8 +184,25 @@ static std::string h5_metric_name(std::string k) {
   return k;
 }
 
-std::map<std::string, std::vector<double>> read_metric_results(const std::string& dir) {
-  const std::string path = (fs::path(dir) / "metrics.h5").string();
+// metrics.h5 is sealed (core/h5_seal.h): a changed byte is refused before libhdf5
+// reads it; one written before seals is read in a forked child first. Either way a
+// damaged file is a UserError naming it, never a crash or silently wrong numbers.
+static std::string metrics_file_path(const std::string& dir) { return (fs::path(dir) / "metrics.h5").string(); }
+
+static std::string metrics_file_fix(const std::string& dir) {
+  return fmt::format("delete the run directory '{}' and run the command again to recompute it", dir);
+}
+
+static void guard_metrics_file(const std::string& dir, const std::function<void()>& probe) {
+  const std::string path = metrics_file_path(dir);
+  std::error_code ec;
+  if (!fs::is_regular_file(path, ec))
+    fail("metrics file '{}' does not exist; {}", path, metrics_file_fix(dir));
+  guard_h5_read(path, "metrics file", metrics_file_fix(dir), probe);
+}
+
+static std::map<std::string, std::vector<double>> read_metric_results_unchecked(const std::string& dir) {
+  const std::string path = metrics_file_path(dir);
   std::map<std::string, std::vector<double>> out;
   try {
     H5::Exception::dontPrint();
@@ -193,17 +211,25 @@ std::map<std::string, std::vector<double>> read_metric_results(const std::string
     for (hsize_t i = 0; i < g.getNumObjs(); ++i) {
       std::string name = g.getObjnameByIdx(i);
       H5::DataSet ds = g.openDataSet(name);
+      H5::DataSpace space = ds.getSpace();
+      if (space.getSimpleExtentNdims() != 1)  // one value per replicate (getSimpleExtentDims would overrun n)
+        fail("{}: dataset 'replicates/{}' is not one-dimensional; {}", path, name, metrics_file_fix(dir));
       hsize_t n = 0;
-      ds.getSpace().getSimpleExtentDims(&n);
+      space.getSimpleExtentDims(&n);
       std::vector<double> v(n);
       ds.read(v.data(), H5::PredType::NATIVE_DOUBLE);
       std::replace(name.begin(), name.end(), '|', '/');
       out[name] = v;
     }
   } catch (const H5::Exception& e) {
-    fail("{}: cannot read metric results ({}); delete the run directory to recompute it", path, e.getDetailMsg());
+    fail("{}: cannot read metric results ({}); {}", path, e.getDetailMsg(), metrics_file_fix(dir));
   }
   return out;
+}
+
+std::map<std::string, std::vector<double>> read_metric_results(const std::string& dir) {
+  guard_metrics_file(dir, [&] { read_metric_results_unchecked(dir); });
+  return read_metric_results_unchecked(dir);
 }
 
 static void write_metric_results_impl(const std::string& dir, const std::map<std::string, std::vector<double>>& values,
@@ -243,8 +269,8 @@ void write_record(H5::H5File& f, const EvalSampleRecord& r) {
 
 }  // namespace
 
-EvalEmbeddings read_eval_embeddings(const std::string& dir) {
-  const std::string path = (fs::path(dir) / "metrics.h5").string();
+static EvalEmbeddings read_eval_embeddings_unchecked(const std::string& dir) {
+  const std::string path = metrics_file_path(dir);
   EvalEmbeddings e;
   try {
     H5::Exception::dontPrint();
@@ -259,9 +285,14 @@ EvalEmbeddings read_eval_embeddings(const std::string& dir) {
     e.gt_motion = read_matrix(g, "gt_motion");
     e.captions = read_strings(g, "captions");
   } catch (const H5::Exception& ex) {
-    fail("{}: cannot read the embeddings ({}); delete the run directory to recompute it", path, ex.getDetailMsg());
+    fail("{}: cannot read the embeddings ({}); {}", path, ex.getDetailMsg(), metrics_file_fix(dir));
   }
   return e;
+}
+
+EvalEmbeddings read_eval_embeddings(const std::string& dir) {
+  guard_metrics_file(dir, [&] { read_eval_embeddings_unchecked(dir); });
+  return read_eval_embeddings_unchecked(dir);
 }
 
 void write_metric_results(const std::string& dir, const std::map<std::string, std::vector<double>>& values) {
@@ -287,10 +318,13 @@ static void write_metric_results_impl(const std::string& dir, const std::map<std
   }
   write_file_atomic(fs::path(dir) / "metrics.csv", csv);
 
-  AtomicOutput out(fs::path(dir) / "metrics.h5");
+  AtomicOutput out(metrics_file_path(dir));
   {
     H5::Exception::dontPrint();
-    H5::H5File f(out.tmp_path().string(), H5F_ACC_TRUNC);
+    // The user block holds the checksum seal (core/h5_seal.h), written once the file is closed.
+    H5::FileCreatPropList fcpl;
+    fcpl.setUserblock(kH5SealBlock);
+    H5::H5File f(out.tmp_path().string(), H5F_ACC_TRUNC, fcpl);
     H5::Group g = f.createGroup("replicates");
     for (auto& [k, v] : values) {
       hsize_t n = v.size();
@@ -312,7 +346,8 @@ static void write_metric_results_impl(const std::string& dir, const std::map<std
     f.createAttribute("format_version", H5::PredType::STD_I64LE, H5::DataSpace(H5S_SCALAR))
         .write(H5::PredType::NATIVE_INT64, &version);
     if (record) write_record(f, *record);
-  }
+  }  // closed (flushed) here, before the seal covers its bytes
+  seal_h5_file(out.tmp_path().string(), fmt::format("metrics file '{}'", metrics_file_path(dir)));
   out.commit();
 }
 

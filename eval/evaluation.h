@@ -75,10 +75,13 @@ EvalEmbeddings select_rows(const EvalEmbeddings& e, const std::vector<size_t>& i
 // bootstrap interval; n = B). With B < 2 the spread is 0.
 Replicated bootstrap_summary(double full_set_value, const std::vector<double>& resamples);
 
-// Writes {metric: replicate values} and their summaries as CSV and HDF5 (atomic).
-// Replications (fresh generations per replicate): mean +- 1.96 std / sqrt(n).
+// Writes {metric: replicate values} and their summaries as CSV and HDF5 (atomic;
+// metrics.h5 sealed, core/h5_seal.h). Replications (fresh generations per
+// replicate): mean +- 1.96 std / sqrt(n).
 void write_metric_results(const std::string& dir, const std::map<std::string, std::vector<double>>& values);
-// Reads what write_metric_results wrote (metrics.h5); UserError naming the file.
+// Reads what write_metric_results wrote (metrics.h5); UserError naming the file and
+// the fix when it is missing, damaged (seal mismatch) or unreadable. A file written
+// before seals is read in a forked child first, so it cannot crash this process.
 std::map<std::string, std::vector<double>> read_metric_results(const std::string& dir);
 std::string format_metric_table(const std::map<std::string, std::vector<double>>& values);
 std::string format_metric_table(const std::map<std::string, Replicated>& summaries);

@@ -17,6 +17,8 @@ void write_strings(H5::Group& g, const std::string& name, const std::vector<std:
 std::vector<std::string> read_strings(H5::Group& g, const std::string& name) {
   H5::DataSet ds = g.openDataSet(name);
   hsize_t n = 0;
+  // A damaged (unsealed) file may hold more dimensions than the one n has room for.
+  if (ds.getSpace().getSimpleExtentNdims() != 1) throw H5::DataSetIException("read_strings", name + " is not 1-D");
   ds.getSpace().getSimpleExtentDims(&n);
   H5::StrType type(H5::PredType::C_S1, H5T_VARIABLE);
   type.setCset(H5T_CSET_UTF8);  // as written: HDF5 does not convert between character sets

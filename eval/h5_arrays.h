@@ -11,6 +11,7 @@
 namespace mc {
 
 void write_strings(H5::Group& g, const std::string& name, const std::vector<std::string>& v);
+// Throws H5::DataSetIException when the dataset is not 1-D.
 std::vector<std::string> read_strings(H5::Group& g, const std::string& name);
 void write_matrix(H5::Group& g, const std::string& name, const Eigen::MatrixXd& m);
 // Throws H5::DataSetIException when the dataset is not 2-D (callers turn it into a

@@ -1,4 +1,5 @@
-// Paired decisions: per-sample row records (samples.h5), the papers' headline
+// Paired decisions: per-sample row records (samples.h5, sealed; a row's cached
+// records read back or found damaged), the papers' headline
 // averaging over task groups, FID/KID on resampled indices without refitting the
 // reference, and the stratified paired bootstrap behind the claim verdicts.
 #include "experiments/paired.h"
@@ -12,6 +13,7 @@
 
 #include "core/atomic_file.h"
 #include "core/error.h"
+#include "core/h5_seal.h"
 #include "eval/h5_arrays.h"
 
 namespace mc {
@@ -465,13 +467,60 @@ std::string h5_key(std::string k) {
   return k;
 }
 
+// A damaged record is the row's cache: deleting its run directory recomputes it.
+std::string row_samples_fix(const std::string& path) {
+  return fmt::format("delete the row's run directory '{}' and re-run reproduce to recompute the row",
+                     fs::path(path).parent_path().string());
+}
+
+RowSamples read_row_samples_unchecked(const std::string& path) {
+  RowSamples s;
+  try {
+    H5::Exception::dontPrint();
+    H5::H5File f(path, H5F_ACC_RDONLY);
+    H5::Group t = f.openGroup("tasks");
+    s.task_ids = read_strings(t, "ids");
+    s.groups = read_strings(t, "groups");
+    for (size_t r = 0; f.nameExists(fmt::format("r{}", r)); ++r) {
+      H5::Group g = f.openGroup(fmt::format("r{}", r));
+      uint64_t seed = 0;
+      g.openAttribute("seed").read(H5::PredType::NATIVE_UINT64, &seed);
+      s.seeds.push_back(seed);
+      if (g.nameExists("motion")) s.motion.push_back(read_matrix(g, "motion"));
+      if (g.nameExists("text")) s.text.push_back(read_matrix(g, "text"));
+      H5::Group m = g.openGroup("samples");
+      std::map<std::string, std::vector<double>> mm;
+      for (hsize_t i = 0; i < m.getNumObjs(); ++i) {
+        std::string name = m.getObjnameByIdx(i);
+        H5::DataSet ds = m.openDataSet(name);
+        H5::DataSpace space = ds.getSpace();
+        if (space.getSimpleExtentNdims() != 1)  // one value per task (getSimpleExtentDims would overrun n)
+          fail("{}: dataset 'r{}/samples/{}' is not one-dimensional; {}", path, r, name, row_samples_fix(path));
+        hsize_t n = 0;
+        space.getSimpleExtentDims(&n);
+        std::vector<double> v(n);
+        if (n) ds.read(v.data(), H5::PredType::NATIVE_DOUBLE);
+        std::replace(name.begin(), name.end(), '|', '/');
+        mm[name] = std::move(v);
+      }
+      s.metrics.push_back(std::move(mm));
+    }
+  } catch (const H5::Exception& e) {
+    fail("{}: cannot read the row's per-sample record ({}); {}", path, e.getDetailMsg(), row_samples_fix(path));
+  }
+  return s;
+}
+
 }  // namespace
 
 void write_row_samples(const std::string& path, const RowSamples& s) {
   AtomicOutput out(path);
   {
     H5::Exception::dontPrint();
-    H5::H5File f(out.tmp_path().string(), H5F_ACC_TRUNC);
+    // The user block holds the checksum seal (core/h5_seal.h), written once the file is closed.
+    H5::FileCreatPropList fcpl;
+    fcpl.setUserblock(kH5SealBlock);
+    H5::H5File f(out.tmp_path().string(), H5F_ACC_TRUNC, fcpl);
     H5::Group root = f.openGroup("/");
     {
       H5::StrType type(H5::PredType::C_S1, H5T_VARIABLE);
@@ -498,44 +547,29 @@ void write_row_samples(const std::string& path, const RowSamples& s) {
         m.createDataSet(h5_key(k), H5::PredType::IEEE_F64LE, space).write(v.data(), H5::PredType::NATIVE_DOUBLE);
       }
     }
-  }
+  }  // closed (flushed) here, before the seal covers its bytes
+  seal_h5_file(out.tmp_path().string(), fmt::format("per-sample record '{}'", path));
   out.commit();
 }
 
 RowSamples read_row_samples(const std::string& path) {
-  RowSamples s;
+  std::error_code ec;
+  if (!fs::is_regular_file(path, ec)) fail("per-sample record '{}' does not exist; {}", path, row_samples_fix(path));
+  guard_h5_read(path, "per-sample record", row_samples_fix(path), [&] { read_row_samples_unchecked(path); });
+  return read_row_samples_unchecked(path);
+}
+
+CachedRowRecords read_cached_row_records(const std::string& run_dir) {
+  CachedRowRecords c;
   try {
-    H5::Exception::dontPrint();
-    H5::H5File f(path, H5F_ACC_RDONLY);
-    H5::Group t = f.openGroup("tasks");
-    s.task_ids = read_strings(t, "ids");
-    s.groups = read_strings(t, "groups");
-    for (size_t r = 0; f.nameExists(fmt::format("r{}", r)); ++r) {
-      H5::Group g = f.openGroup(fmt::format("r{}", r));
-      uint64_t seed = 0;
-      g.openAttribute("seed").read(H5::PredType::NATIVE_UINT64, &seed);
-      s.seeds.push_back(seed);
-      if (g.nameExists("motion")) s.motion.push_back(read_matrix(g, "motion"));
-      if (g.nameExists("text")) s.text.push_back(read_matrix(g, "text"));
-      H5::Group m = g.openGroup("samples");
-      std::map<std::string, std::vector<double>> mm;
-      for (hsize_t i = 0; i < m.getNumObjs(); ++i) {
-        std::string name = m.getObjnameByIdx(i);
-        H5::DataSet ds = m.openDataSet(name);
-        hsize_t n = 0;
-        ds.getSpace().getSimpleExtentDims(&n);
-        std::vector<double> v(n);
-        if (n) ds.read(v.data(), H5::PredType::NATIVE_DOUBLE);
-        std::replace(name.begin(), name.end(), '|', '/');
-        mm[name] = std::move(v);
-      }
-      s.metrics.push_back(std::move(mm));
-    }
-  } catch (const H5::Exception& e) {
-    fail("{}: cannot read the row's per-sample record ({}); delete the row's run directory to recompute it", path,
-         e.getDetailMsg());
+    c.values = read_metric_results(run_dir);
+    c.samples = read_row_samples((fs::path(run_dir) / "samples.h5").string());
+  } catch (const UserError& e) {
+    // Damaged, truncated, unreadable or missing: all mean "not cached". Nothing half-read is kept.
+    c = CachedRowRecords{};
+    c.damage = e.what();
   }
-  return s;
+  return c;
 }
 
 }  // namespace mc

@@ -27,9 +27,25 @@ struct RowSamples {
   size_t replicates() const { return metrics.size(); }
   bool empty() const { return task_ids.empty() || metrics.empty(); }
 };
-// <run dir>/samples.h5 (docs/formats.md, "samples.h5"). Atomic write; read fails naming the file.
+// <run dir>/samples.h5 (docs/formats.md, "samples.h5"). Atomic, sealed write
+// (core/h5_seal.h); the read fails naming the file and the fix (delete the row's run
+// directory) when it is missing, damaged or unreadable, and reads a file written
+// before seals in a forked child first, so it cannot crash this process.
 void write_row_samples(const std::string& path, const RowSamples& s);
 RowSamples read_row_samples(const std::string& path);
+
+// What a finished row run left for the replay's cache: its replicate values
+// (metrics.h5) and per-sample records (samples.h5). A damaged cache is a cache miss,
+// not a failed row: when either file is missing, damaged (seal mismatch) or
+// unreadable, `damage` says which and why (naming the file) and the rest is empty,
+// so the caller warns and recomputes the row (docs/choices.md, "Damaged result files").
+struct CachedRowRecords {
+  std::map<std::string, std::vector<double>> values;
+  RowSamples samples;
+  std::string damage;  // '' = both read
+  bool usable() const { return damage.empty(); }
+};
+CachedRowRecords read_cached_row_records(const std::string& run_dir);
 
 // How a per-sample metric becomes a table number.
 //  - group-averaged (control errors, foot skating, lifting errors): the papers' mean over

@@ -18,7 +18,7 @@
 
 #include "core/atomic_file.h"
 #include "core/error.h"
-#include "core/isolated.h"
+#include "core/h5_seal.h"
 #include "eval/metrics.h"
 #include "experiments/paired.h"
 
@@ -427,6 +427,30 @@ static void copy_examples(const fs::path& file, H5::Group& dst, hsize_t keep) {
   }
 }
 
+// A row's examples.h5 (written by experiments/row_runner.cpp, unsealed so far) read
+// as every HDF5 input is: a sealed one is checked, an unsealed one is copied once in a
+// forked child first, so a damaged file is a UserError naming it, never a crash
+// half-way through writing results.h5.
+static void copy_row_examples(const fs::path& file, H5::Group& dst) {
+  const std::string fix = fmt::format("delete the row's run directory '{}' and re-run reproduce to recompute it",
+                                      file.parent_path().string());
+  auto copy = [&](H5::Group& g) {
+    try {
+      copy_examples(file, g, kExamplesInResults);
+    } catch (const H5::Exception& e) {
+      fail("{}: cannot copy the row's examples ({}); {}", file.string(), e.getDetailMsg(), fix);
+    }
+  };
+  guard_h5_read(file.string(), "row examples file", fix, [&] {
+    H5::FileAccPropList fapl;
+    fapl.setCore(1 << 20, false);  // in memory, never written
+    H5::H5File mem("examples_probe.h5", H5F_ACC_TRUNC, H5::FileCreatPropList::DEFAULT, fapl);
+    H5::Group g = mem.createGroup("probe");
+    copy(g);
+  });
+  copy(dst);
+}
+
 // metrics.csv of a training run as one dataset per column.
 static void copy_training_curves(const fs::path& run_dir, H5::Group& dst) {
   std::ifstream in(run_dir / "metrics.csv");
@@ -544,7 +568,10 @@ void write_results_h5(const std::string& path, const std::vector<TableResult>& t
         fail("{}: cannot read the earlier replay's results ({}); move it away or re-run every table (omit --tables)",
              kept_from, e.getDetailMsg());
       }
-    H5::H5File f(out.tmp_path().string(), H5F_ACC_TRUNC);
+    // The user block holds the checksum seal (core/h5_seal.h), written once the file is closed.
+    H5::FileCreatPropList fcpl;
+    fcpl.setUserblock(kH5SealBlock);
+    H5::H5File f(out.tmp_path().string(), H5F_ACC_TRUNC, fcpl);
     H5::Group root = f.openGroup("/");
     write_string_attr(root, "profile", profile);
     // Every commit the tables come from, in table order (one for a full replay).
@@ -585,12 +612,7 @@ void write_results_h5(const std::string& path, const std::vector<TableResult>& t
           made = true;
         }
         H5::Group rg = tg2.createGroup(h5_name(r.row_id));
-        try {
-          copy_examples(ex, rg, kExamplesInResults);
-        } catch (const H5::Exception& e) {
-          fail("{}: cannot copy the row's examples ({}); delete the row's run directory to recompute it", ex.string(),
-               e.getDetailMsg());
-        }
+        copy_row_examples(ex, rg);
       }
     }
     if (skeleton) {
@@ -629,13 +651,17 @@ void write_results_h5(const std::string& path, const std::vector<TableResult>& t
       write_string_attr(g, "definition", c.definition);
       write_string_attr(g, "order", std::to_string(i));
     }
-  }
+  }  // closed (flushed) here, the earlier file too, before the seal covers its bytes
+  seal_h5_file(out.tmp_path().string(), fmt::format("results file '{}'", path));
   out.commit();
 }
 
 // ------------------------------------------------------------------ results.h5, read back
 
 namespace {
+
+// What to do about an earlier results.h5 that cannot be read: a full replay writes it anew.
+constexpr const char* kResultsFix = "move it away or re-run every table (omit --tables)";
 
 std::string read_string_attr(const H5::H5Object& obj, const char* name) {
   if (!obj.attrExists(name)) return "";
@@ -764,8 +790,7 @@ StoredResults read_results_h5_unchecked(const std::string& path, bool copy_all) 
         if (f.nameExists(top)) copy_object(f, mem, std::string("/") + top);
     }
   } catch (const H5::Exception& e) {
-    fail("{}: cannot read the earlier replay's results ({}); move it away or re-run every table (omit --tables)",
-         path, e.getDetailMsg());
+    fail("{}: cannot read the earlier replay's results ({}); {}", path, e.getDetailMsg(), kResultsFix);
   }
   return s;
 }
@@ -784,8 +809,12 @@ const ClaimCheck* StoredResults::claim(const std::string& id) const {
   return nullptr;
 }
 
+// results.h5 is sealed: a changed byte is refused before libhdf5 reads it (a byte flip
+// could otherwise crash it or, worse, put a wrong number in a kept table). One written
+// before seals is read in a forked child first, copying everything a partial replay may
+// copy, so a damaged one fails there and not half-way through the merged file.
 StoredResults read_results_h5(const std::string& path) {
-  isolated_probe(fmt::format("the earlier replay's results '{}'", path), [&] { read_results_h5_unchecked(path, true); });
+  guard_h5_read(path, "the earlier replay's results", kResultsFix, [&] { read_results_h5_unchecked(path, true); });
   return read_results_h5_unchecked(path, false);
 }
 

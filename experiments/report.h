@@ -84,15 +84,17 @@ struct ClaimCheck {
 // /training/<run>/ the metrics.csv columns of every trained component the rows used;
 // /claims/<id> every claim's verdict. Tables with `kept` set are copied verbatim from
 // `kept_from` (an earlier results.h5) with their examples and training curves.
+// Written atomically and sealed (core/h5_seal.h).
 void write_results_h5(const std::string& path, const std::vector<TableResult>& tables, const std::string& profile,
                       const Skeleton* skeleton = nullptr, const std::vector<std::string>& extra_components = {},
                       const std::vector<ClaimCheck>& claims = {}, const std::string& kept_from = "");
 
 // What an earlier replay left in results.h5: its tables (kept = true; rows with their
 // replicate values and components, no per-sample records) and the claims it decided.
-// A file written before tables recorded their run has empty ReplayRun settings. Read in
-// a forked child first (results.h5 is not sealed), so a damaged file is a UserError
-// naming it, never a crash.
+// A file written before tables recorded their run has empty ReplayRun settings. Its
+// seal (core/h5_seal.h) is checked first; one written before seals is read in a
+// forked child first. Either way a damaged file is a UserError naming it and the fix,
+// never a crash or a kept table with wrong numbers.
 struct StoredResults {
   std::string file;
   std::vector<TableResult> tables;

@@ -10,6 +10,7 @@
 #include <vector>
 
 #include "core/error.h"
+#include "core/isolated.h"
 
 namespace mc {
 namespace {
@@ -72,7 +73,7 @@ void seal_h5_file(const std::string& path, const std::string& what) {
   if (!f) fail("cannot seal {} '{}': writing its first {} bytes failed (disk full?)", what, path, kH5SealBlock);
 }
 
-H5Seal check_h5_seal(const std::string& path, const std::string& what) {
+H5Seal check_h5_seal(const std::string& path, const std::string& what, const std::string& fix) {
   std::ifstream in(path, std::ios::binary);
   if (!in) fail("{} '{}' cannot be read (permission denied?)", what, path);
   std::string head(kH5SealBlock, '\0');
@@ -82,25 +83,32 @@ H5Seal check_h5_seal(const std::string& path, const std::string& what) {
     // A seal whose first line was damaged still looks like one: refuse it rather
     // than hand libhdf5 a file we know was altered.
     if (in.gcount() >= 12 && head.compare(0, 12, std::string(kMagic, 12)) == 0)
-      fail("{} '{}' is damaged: its checksum header (first line '{}') is corrupt; re-create the file", what, path,
-           head.substr(0, head.find('\n')));
+      fail("{} '{}' is damaged: its checksum header (first line '{}') is corrupt; {}", what, path,
+           head.substr(0, head.find('\n')), fix);
     return H5Seal::absent;
   }
   in.clear();
   uint64_t size = 0, want_size = 0;
   unsigned want_crc = 0;
   if (std::sscanf(head.c_str() + magic_len, "size %" SCNu64 "\ncrc32 %8x\n", &want_size, &want_crc) != 2)
-    fail("{} '{}' is damaged: its checksum header cannot be parsed; re-create the file", what, path);
+    fail("{} '{}' is damaged: its checksum header cannot be parsed; {}", what, path, fix);
   const uint32_t crc = body_crc(in, size);
   if (size != want_size)
-    fail("{} '{}' is damaged or truncated: it has {} bytes but was written with {}; re-create the file", what, path,
-         size, want_size);
+    fail("{} '{}' is damaged or truncated: it has {} bytes but was written with {}; {}", what, path, size, want_size,
+         fix);
   if (crc != want_crc)
     fail("{} '{}' is damaged: its checksum (CRC-32 {:08x}) does not match the one written with it ({:08x}), so "
-         "bytes changed after it was written; re-create the file (or, if you edited it in place on purpose, e.g. "
-         "with h5py, re-seal it: python3 tools/motionio.py reseal '{}')",
-         what, path, crc, want_crc, path);
+         "bytes changed after it was written; {} (or, if you edited it in place on purpose, e.g. with h5py, re-seal "
+         "it: python3 tools/motionio.py reseal '{}')",
+         what, path, crc, want_crc, fix, path);
   return H5Seal::valid;
+}
+
+H5Seal guard_h5_read(const std::string& path, const std::string& what, const std::string& fix,
+                     const std::function<void()>& probe) {
+  const H5Seal seal = check_h5_seal(path, what, fix);
+  if (seal == H5Seal::absent) isolated_probe(fmt::format("{} '{}'", what, path), probe, kProbeTimeoutS, fix);
+  return seal;
 }
 
 }  // namespace mc

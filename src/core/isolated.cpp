@@ -29,7 +29,8 @@ void write_all(int fd, const std::string& s) {
 
 }  // namespace
 
-void isolated_probe(const std::string& what, const std::function<void()>& probe, double timeout_s) {
+void isolated_probe(const std::string& what, const std::function<void()>& probe, double timeout_s,
+                    const std::string& fix) {
   int fds[2];
   if (::pipe(fds) != 0) {
     probe();  // no pipe (fd limit): read unprotected rather than refuse a good file
@@ -90,23 +91,21 @@ void isolated_probe(const std::string& what, const std::function<void()>& probe,
   while (::waitpid(pid, &status, 0) < 0 && errno == EINTR) {
   }
   if (timed_out)
-    fail("reading {} did not finish within {} s (the file is probably damaged so that the reader loops); re-create "
-         "it",
-         what, timeout_s);
+    fail("reading {} did not finish within {} s (the file is probably damaged so that the reader loops); {}", what,
+         timeout_s, fix);
   if (WIFSIGNALED(status))
-    fail("reading {} crashed the HDF5 library ({}): the file is damaged; re-create it", what,
-         ::strsignal(WTERMSIG(status)));
-  if (report.empty()) fail("reading {} stopped without a result (exit status {}): the file is damaged; re-create it",
-                           what, WIFEXITED(status) ? WEXITSTATUS(status) : -1);
+    fail("reading {} crashed the HDF5 library ({}): the file is damaged; {}", what, ::strsignal(WTERMSIG(status)), fix);
+  if (report.empty())
+    fail("reading {} stopped without a result (exit status {}): the file is damaged; {}", what,
+         WIFEXITED(status) ? WEXITSTATUS(status) : -1, fix);
   switch (report[0]) {
     case 'k': return;
     case 'u': throw UserError(report.substr(1));
     case 'm':
-      fail("reading {} needs more memory than this machine has: the sizes in the file are damaged or too large; "
-           "re-create it",
-           what);
+      fail("reading {} needs more memory than this machine has: the sizes in the file are damaged or too large; {}",
+           what, fix);
     default:
-      fail("reading {} failed: {}; the file is damaged, re-create it", what, report.substr(1));
+      fail("reading {} failed: {}; the file is damaged, {}", what, report.substr(1), fix);
   }
 }
 

@@ -13,7 +13,10 @@ namespace mc {
 // UserError (message kept) when it threw one; throws a UserError that names
 // `what` when it crashed (signal), ran out of memory, threw anything else or ran
 // longer than `timeout_s` seconds. The child shares nothing with this process after
-// the fork, so `probe` should only read (its results are discarded).
-void isolated_probe(const std::string& what, const std::function<void()>& probe, double timeout_s = 600);
+// the fork, so `probe` should only read (its results are discarded). `fix` ends those
+// messages: what the user does about a damaged file (a cache is deleted, not re-created).
+inline constexpr double kProbeTimeoutS = 600;
+void isolated_probe(const std::string& what, const std::function<void()>& probe, double timeout_s = kProbeTimeoutS,
+                    const std::string& fix = "re-create it");
 
 }  // namespace mc
