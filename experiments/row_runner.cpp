@@ -7,6 +7,7 @@
 
 #include <chrono>
 #include <filesystem>
+#include <iostream>
 #include <set>
 #include <sstream>
 
@@ -461,7 +462,23 @@ RowResult run_row(const ProfileFile& pf, const TableSpec& table, const RowConfig
   const std::string record_note =
       "a table row: the trained components and the evaluator it was computed with; a replay recomputes it when "
       "they differ (docs/choices.md, \"Table replay: rows keyed by their weights\")";
-  bool cached = run.finished() && fs::exists(run.path() / "metrics.h5") && fs::exists(run.path() / "samples.h5");
+  bool cached = run.finished();
+  // A damaged cache (metrics.h5 or samples.h5 missing, seal mismatch, unreadable) is a
+  // miss, not a failed row: the row is deterministic, so it is recomputed in place.
+  CachedRowRecords records;
+  if (cached) {
+    records = read_cached_row_records(run.path().string());
+    if (!records.usable()) {
+      const std::string warning =
+          fmt::format("warning: row {}: its cache cannot be used, recomputing it: {}", row.id, records.damage);
+      std::cerr << warning << "\n";
+      RunConfig again = rc;
+      again.force = true;
+      run = RunDir::open(again, yaml, {}, run_name);
+      run.log().info(warning);
+      cached = false;
+    }
+  }
   if (cached) {
     const RowReuse reuse = check_row(run.path(), components, evaluator);
     if (reuse.state == RowReuse::State::recompute) {
@@ -488,8 +505,8 @@ RowResult run_row(const ProfileFile& pf, const TableSpec& table, const RowConfig
     }
   }
   if (cached) {
-    result.values = read_metric_results(run.path().string());
-    result.samples = read_row_samples((run.path() / "samples.h5").string());
+    result.values = std::move(records.values);
+    result.samples = std::move(records.samples);
     alias_foot_skating(result, table.table.foot_skating);
     result.cached = true;
     if (fs::exists(run.path() / "notes.txt")) {

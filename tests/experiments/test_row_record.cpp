@@ -345,4 +345,23 @@ TEST_CASE("reproduce: a cached row is reused while its components keep their wei
   CHECK_THAT(out, Catch::Contains("recomputing it") && Catch::Contains("trained again at"));
   CHECK(read_dependency_record(row).has_value());
   CHECK(slurp(row / "DONE").rfind("2000-", 0) != 0);
+
+  // (d) A damaged cache (a byte of the sealed metrics.h5 changed, then samples.h5
+  // missing) is a miss: the row is recomputed with a warning naming the file, not failed.
+  REQUIRE(std::regex_search(replay(), cached_line));
+  const std::string fid_before = summary_line(row, "fid");
+  std::string bytes = read_file(row / "metrics.h5");
+  REQUIRE(bytes.size() > 4096);
+  bytes[bytes.size() / 2] = static_cast<char>(bytes[bytes.size() / 2] ^ 0x5a);
+  write_file_atomic(row / "metrics.h5", bytes);
+  out = replay();
+  CHECK_FALSE(std::regex_search(out, cached_line));
+  CHECK_THAT(out, Catch::Contains("cache cannot be used, recomputing it") && Catch::Contains("metrics.h5"));
+  CHECK(summary_line(row, "fid") == fid_before);  // deterministic: the same numbers again
+  CHECK(std::regex_search(replay(), cached_line));
+  fs::remove(row / "samples.h5");
+  out = replay();
+  CHECK_FALSE(std::regex_search(out, cached_line));
+  CHECK_THAT(out, Catch::Contains("cache cannot be used") && Catch::Contains("samples.h5"));
+  CHECK(fs::exists(row / "samples.h5"));
 }
