@@ -183,4 +183,8 @@ std::map<std::string, std::vector<double>> row_sample_metrics(const MotionSet& g
 // metrics.csv/h5, DONE). A finished run with the same key is read back instead.
 RowResult run_row(const ProfileFile& profile, const TableSpec& table, const RowConfig& row, RowEvaluator& ev);
 
+// A row's examples.h5 (row_runner.cpp): the first `k` generated samples with their
+// targets, hard point constraints and cameras, for figures; sealed (core/h5_seal.h).
+void write_examples(const std::string& path, const MotionSet& gen, const std::vector<ControlTask>& tasks, size_t k);
+
 }  // namespace mc

@@ -427,9 +427,9 @@ static void copy_examples(const fs::path& file, H5::Group& dst, hsize_t keep) {
   }
 }
 
-// A row's examples.h5 (written by experiments/row_runner.cpp, unsealed so far) read
-// as every HDF5 input is: a sealed one is checked, an unsealed one is copied once in a
-// forked child first, so a damaged file is a UserError naming it, never a crash
+// A row's examples.h5 (written sealed by write_examples, experiments/row_runner.cpp;
+// rows cached before that are unsealed) read as every HDF5 input is: a sealed one is
+// checked, an unsealed one is copied once in a forked child first, so a damaged file is a UserError naming it, never a crash
 // half-way through writing results.h5.
 static void copy_row_examples(const fs::path& file, H5::Group& dst) {
   const std::string fix = fmt::format("delete the row's run directory '{}' and re-run reproduce to recompute it",

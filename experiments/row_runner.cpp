@@ -18,6 +18,7 @@
 
 #include "core/atomic_file.h"
 #include "core/error.h"
+#include "core/h5_seal.h"
 #include "data/fixture/fixture_build.h"
 #include "data/motion_file_extra.h"
 #include "data/motion_set.h"
@@ -346,8 +347,10 @@ static void alias_foot_skating(RowResult& r, const std::string& convention) {
 }
 
 // The first `k` samples of a replicate with what figures need to draw them
-// against their tasks: target clip, hard 3D point constraints, cameras.
-static void write_examples(const std::string& path, const MotionSet& gen, const std::vector<ControlTask>& tasks,
+// against their tasks: target clip, hard 3D point constraints, cameras. Sealed like
+// the row's other files (core/h5_seal.h), so report.cpp's copy into results.h5
+// refuses a damaged one naming it instead of copying garbage or crashing.
+void write_examples(const std::string& path, const MotionSet& gen, const std::vector<ControlTask>& tasks,
                            size_t k) {
   k = std::min(k, tasks.size());
   const int J = gen.num_joints(), T = gen.t_max;
@@ -395,7 +398,9 @@ static void write_examples(const std::string& path, const MotionSet& gen, const 
   AtomicOutput out(path);
   {
     H5::Exception::dontPrint();
-    H5::H5File f(out.tmp_path().string(), H5F_ACC_TRUNC);
+    H5::FileCreatPropList fcpl;
+    fcpl.setUserblock(kH5SealBlock);  // the seal, written once the file is closed
+    H5::H5File f(out.tmp_path().string(), H5F_ACC_TRUNC, fcpl);
     hsize_t d4[4] = {k, static_cast<hsize_t>(T), static_cast<hsize_t>(J), 3};
     H5::DataSpace s4(4, d4);
     f.createDataSet("joints", H5::PredType::NATIVE_FLOAT, s4).write(joints.data(), H5::PredType::NATIVE_FLOAT);
@@ -418,7 +423,8 @@ static void write_examples(const std::string& path, const MotionSet& gen, const 
       H5::StrType type(H5::PredType::C_S1, std::max<size_t>(1, value.size()));
       f.createAttribute(name, type, scalar).write(type, value.empty() ? std::string(" ") : value);
     }
-  }
+  }  // closed (flushed) here, before the seal covers its bytes
+  seal_h5_file(out.tmp_path().string(), fmt::format("row examples file '{}'", path));
   out.commit();
 }
 

@@ -1,5 +1,5 @@
 // Issue 16, the result files: metrics.h5 (eval/evaluation.cpp), a row's samples.h5
-// (experiments/paired.cpp) and results.h5 (experiments/report.cpp) are sealed like
+// (experiments/paired.cpp) and examples.h5 (experiments/row_runner.cpp) and results.h5 (experiments/report.cpp) are sealed like
 // motion files (core/h5_seal.h). Each kind round-trips; a changed byte anywhere past
 // the seal block, or a truncation, is refused naming the file and what to do; a damaged
 // row cache is a cache miss (read_cached_row_records) rather than a failed row; files
@@ -16,6 +16,9 @@
 #include "core/h5_seal.h"
 #include "eval/eval_outputs.h"
 #include "eval/evaluation.h"
+#include "data/motion_set.h"
+#include "data/skeleton.h"
+#include "experiments/experiment.h"
 #include "experiments/paired.h"
 #include "experiments/report.h"
 #include "test_util.h"
@@ -281,4 +284,54 @@ TEST_CASE("results.h5: a row's unreadable examples.h5 is exit 2 naming it, and n
   CHECK_THAT(user_error_of([&] { write_results_h5(out.string(), {t}, "ci"); }),
              Contains((row_dir / "examples.h5").string()) && Contains("delete the row's run directory"));
   CHECK(slurp(out) == before);
+}
+
+TEST_CASE("examples.h5 is sealed: round trip into results.h5, a changed byte refused naming the file",
+          "[experiments][robust][io]") {
+  TempDir dir("seal_examples_writer");
+  const fs::path row_dir = dir.path / "rows" / "projflow-456", out = dir.path / "results.h5";
+  fs::create_directories(row_dir);
+  const fs::path examples = row_dir / "examples.h5";
+  MotionSet gen;
+  gen.skeleton = humanml3d_skeleton();
+  gen.t_max = 6;
+  const int J = gen.num_joints();
+  std::vector<ControlTask> tasks(3);
+  for (int i = 0; i < 3; ++i) {
+    gen.lengths.push_back(4 + i);
+    tasks[i].id = fmt::format("clip{}", i);
+    tasks[i].caption = fmt::format("a person walks {} steps", i);
+    tasks[i].length = 4 + i;
+  }
+  gen.joints.resize(3 * gen.clip_stride());
+  for (size_t k = 0; k < gen.joints.size(); ++k) gen.joints[k] = 0.001f * static_cast<float>(k % 977);
+  write_examples(examples.string(), gen, tasks, 2);
+  CHECK(check_h5_seal(examples.string(), "row examples file") == H5Seal::valid);
+  CHECK(slurp(examples).rfind("motionctl-h5-seal 1\n", 0) == 0);
+
+  TableResult t = some_table("t/a", 0);
+  t.rows[1].run_dir = row_dir.string();
+  write_results_h5(out.string(), {t}, "ci");
+  {
+    H5::H5File f(out.string(), H5F_ACC_RDONLY);
+    H5::DataSet d = f.openDataSet("/examples/t|a/projflow/joints");
+    hsize_t dims[4];
+    REQUIRE(d.getSpace().getSimpleExtentNdims() == 4);
+    d.getSpace().getSimpleExtentDims(dims);
+    CHECK(dims[0] == 2);
+    CHECK(dims[1] == 6);
+    CHECK(dims[2] == static_cast<hsize_t>(J));
+    std::vector<float> back(dims[0] * dims[1] * dims[2] * 3);
+    d.read(back.data(), H5::PredType::NATIVE_FLOAT);
+    // Sample i's valid frames are the generated ones; its padding is zero.
+    for (size_t i = 0; i < 2; ++i)
+      for (size_t k = 0; k < gen.clip_stride(); ++k)
+        CHECK(back[i * gen.clip_stride() + k] ==
+              (k < static_cast<size_t>(gen.lengths[i]) * J * 3 ? gen.clip(i)[k] : 0.f));
+  }
+  const std::string good_results = slurp(out);
+  check_flips_refused(
+      examples, 23, [&] { write_results_h5(out.string(), {t}, "ci"); },
+      {examples.string(), "delete the row's run directory '" + row_dir.string() + "'"});
+  CHECK(slurp(out) == good_results);  // a refused copy never replaces results.h5
 }
