@@ -17,6 +17,8 @@
 
 #include "core/atomic_file.h"
 #include "core/error.h"
+#include "core/job_memory.h"
+#include "core/resources.h"
 #include "core/source_dir.h"
 #include "data/skeleton.h"
 #include "experiments/experiment.h"
@@ -174,6 +176,32 @@ static std::string run_timestamp() {
   return fmt::format("{}.{:03d}Z", buf, static_cast<int>(ms));
 }
 
+// Refuses, before anything is built, trained or generated, a replay whose kept values
+// cannot fit (core/job_memory.h): every row keeps, per replicate, its columns and at
+// least one per-sample value (the paired tests and results.h5 need them all at the
+// end). profile.num_samples is capped by the split and the sampler sizes by their
+// declared ranges, so profile.repeats is the size that is unbounded.
+static void check_replay_memory(const ProfileFile& pf, const std::vector<TableSpec>& specs, const std::string& file) {
+  long double values = 0, rows = 0;
+  for (const auto& s : specs) {
+    rows += s.rows.size();
+    values += static_cast<long double>(s.rows.size()) * (s.table.columns.size() + 1);
+    // A multimodality pass generates texts x generations motions at once (at least
+    // one text of one frame and one joint each).
+    if (s.table.multimodality_texts > 0)
+      require_memory(generated_motions_bytes(s.table.multimodality_generations, 1, 1),
+                     fmt::format("the multimodality pass of table {}", s.table.id),
+                     fmt::format("table.multimodality_generations={} generations of at least one text",
+                                 s.table.multimodality_generations),
+                     "lower table.multimodality_generations in its spec (T2M: 30)");
+  }
+  require_memory(replicated_values_bytes(pf.profile.repeats, values), fmt::format("{}: this replay", file),
+                 fmt::format("profile.repeats={} replicates x {} rows of the selected tables x their columns + 1 "
+                             "per-sample value, kept as doubles",
+                             pf.profile.repeats, static_cast<double>(rows)),
+                 "lower profile.repeats (the papers use 20)");
+}
+
 ReproduceResult reproduce(const ReproduceOptions& opt) {
   auto t0 = std::chrono::steady_clock::now();
   std::string profile_file = opt.profile;
@@ -204,6 +232,7 @@ ReproduceResult reproduce(const ReproduceOptions& opt) {
   }
   std::set<std::string> selected_ids;
   for (const auto& s : specs) selected_ids.insert(s.table.id);
+  check_replay_memory(pf, specs, profile_file);
 
   ReproduceResult res;
   fs::path out_dir = fs::path(resolve_data_path(pf.profile.results_root)) / pf.profile.name;

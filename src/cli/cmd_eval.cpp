@@ -18,6 +18,8 @@
 #include "control/sample_constraints.h"
 #include "train/train_job.h"
 #include "core/error.h"
+#include "core/job_memory.h"
+#include "core/resources.h"
 #include "core/run_dir.h"
 #include "data/skeleton.h"
 #include "eval/eval_outputs.h"
@@ -39,6 +41,13 @@ MotionSet split_of(const MotionSet& m, const std::string& split, const std::stri
 
 EvalJobResult run_eval_job(EvalJobConfig& job, const std::vector<std::string>& overrides, const std::string& stem) {
   EvalJobResult res;
+  // protocol.repeats is the one size of an evaluation not bounded by its files: each
+  // bootstrap resample keeps at least matching, diversity and foot_skating until the
+  // summary (core/job_memory.h). Checked before the evaluator is trained or loaded.
+  require_memory(replicated_values_bytes(job.protocol.repeats, 3), fmt::format("{}: this evaluation", stem),
+                 fmt::format("protocol.repeats={} resamples x at least 3 metrics kept as doubles",
+                             job.protocol.repeats),
+                 "lower protocol.repeats (the papers use 20)");
   // Everything the result depends on, by content: the run is keyed by the SHA-1 of the
   // inputs' bytes, so a file regenerated at the same path is a new evaluation, never a
   // stale cached one. The evaluator is trained (or found) first for its checkpoint.

@@ -16,6 +16,8 @@
 #include "control/linear_observation.h"
 #include "control/sample_constraints.h"
 #include "core/error.h"
+#include "core/job_memory.h"
+#include "core/resources.h"
 #include "core/run_dir.h"
 #include "data/fixture/fixture_build.h"
 #include "data/motion_set.h"
@@ -73,6 +75,25 @@ void apply_custom(const GenerateCustomConfig& c, const std::string& file, int nu
   }
 }
 
+// Refuses, before the generator trains or allocates anything, tasks whose generated
+// motions cannot fit (core/job_memory.h): the sizes a user sets are the number of
+// tasks (data.num_samples, capped by the split) and their frames (custom.length).
+void check_generate_memory(const GenerateJobConfig& job, const std::string& file,
+                           const std::vector<ControlTask>& tasks, int joints, int data_frames) {
+  int frames = 0;
+  for (const auto& t : tasks) frames = std::max(frames, t.length);
+  const long double bytes = generated_motions_bytes(tasks.size(), frames, joints);
+  const bool long_clips = job.custom.length > 0 && job.custom.length > data_frames;
+  require_memory(
+      bytes, fmt::format("{}: this generate job", file),
+      fmt::format("{} tasks ({}) x {} frames ({}) x {} joints: float32 joints held 4 times while sampling",
+                  tasks.size(), fmt::format("data.num_samples={}", job.data.num_samples), frames,
+                  job.custom.length > 0 ? fmt::format("custom.length={}", job.custom.length) : "the clips' lengths",
+                  joints),
+      long_clips ? fmt::format("lower custom.length (the data's clips have at most {} frames)", data_frames)
+                 : "lower data.num_samples");
+}
+
 void run_generate(const std::string& file, const std::vector<std::string>& overrides) {
   auto job = load_job<GenerateJobConfig>(file, overrides);
   RunsRootScope components_root(job.run.root);  // what the generator trains lives under run.root
@@ -90,6 +111,7 @@ void run_generate(const std::string& file, const std::vector<std::string>& overr
   const uint64_t seed = static_cast<uint64_t>(job.run.seed);
   std::vector<ControlTask> tasks = as_protocol(job.protocol).make_tasks(data, clips, seed);
   apply_custom(job.custom, file, data.num_joints(), tasks);
+  check_generate_memory(job, file, tasks, data.num_joints(), data.t_max);
 
   GeneratorContext ctx;
   ctx.device = setup_torch(job.run);

@@ -1,5 +1,6 @@
 // `motionctl sample CONFIG [overrides]`: text-to-motion samples from a flow prior
 // (trained on demand from its config), written as a standard motion file.
+#include <algorithm>
 #include <chrono>
 #include <iostream>
 
@@ -9,10 +10,32 @@
 #include "train/dependencies.h"
 #include "train/train_job.h"
 #include "core/error.h"
+#include "core/job_memory.h"
+#include "core/resources.h"
 #include "core/run_dir.h"
 #include "train/trainer.h"
 
 namespace mc {
+
+// Refuses, before the prior is trained or loaded, prompts whose samples cannot fit
+// (core/job_memory.h). The prior's skeleton is not known yet, so one joint is
+// counted (a lower bound); from_split takes clips of the data, whose lengths the
+// prior's own limit bounds, and is checked against that limit after loading.
+static void check_sample_memory(const SampleJobConfig& job, const std::string& file) {
+  const auto& tx = job.texts;
+  if (tx.prompts.empty()) return;
+  int frames = tx.length;
+  std::string key = fmt::format("texts.length={}", tx.length);
+  if (!tx.lengths.empty()) {
+    frames = *std::max_element(tx.lengths.begin(), tx.lengths.end());
+    key = fmt::format("texts.lengths (longest {})", frames);
+  }
+  require_memory(generated_motions_bytes(tx.prompts.size(), frames, 1), fmt::format("{}: this sample job", file),
+                 fmt::format("{} prompts x {} frames ({}) x at least 1 joint: float32 joints held 4 times while "
+                             "sampling",
+                             tx.prompts.size(), frames, key),
+                 "lower texts.length / texts.lengths to at most the prior's frames (196 for HumanML3D)");
+}
 
 static void run_sample(const std::string& file, const std::vector<std::string>& overrides) {
   auto t0 = std::chrono::steady_clock::now();
@@ -23,6 +46,7 @@ static void run_sample(const std::string& file, const std::vector<std::string>& 
   rc.device = job.run.device;
   if (std::string e = rc.validate(); !e.empty()) fail("{}: run.device: {}", file, e);
 
+  check_sample_memory(job, file);
   resolve_dependencies(job.prior);  // a prior named by its training config is trained first
   const std::string prior_dir = job.prior.run();
   torch::Device device = setup_torch(rc);

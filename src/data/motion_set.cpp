@@ -18,6 +18,7 @@
 #include "core/error.h"
 #include "core/h5_seal.h"
 #include "core/isolated.h"
+#include "core/resources.h"
 #include "data/text_vocab.h"
 
 namespace mc {
@@ -212,6 +213,11 @@ class Reader {
       bad(fmt::format("dataset '{}' has shape {} ({:.3g} GB in memory), more than a {}-byte file can hold", name,
                       join_dims(dims), static_cast<double>(bytes / 1e9), file_size_),
           kCorrupt);
+    // A shape a (compressed) file can hold may still be more than this machine has:
+    // the only size `score` and `export` are given is their file's (core/resources.h).
+    require_memory(bytes, fmt::format("reading '{}'", path_),
+                   fmt::format("its dataset '{}' has shape {}", name, join_dims(dims)),
+                   "read a smaller file (fewer clips per file), or use a machine with more memory");
   }
 
   // True when every component of the slash-separated `name` exists.

@@ -10,6 +10,8 @@
 #include <algorithm>
 #include <random>
 
+#include "core/job_memory.h"
+#include "core/resources.h"
 #include "test_util.h"
 
 using namespace mc::test;
@@ -227,5 +229,52 @@ TEST_CASE("fuzz: mutated constraint specs are refused or scored, never a crash",
     auto r = run_fuzzed(fmt::format("score {} --source {} --constraints {}", motions.string(), motions.string(),
                                     spec.string()));
     check_outcome(r, "constraint spec:\n" + text);
+  }
+}
+
+// Issue 16: the sizes of the commands outside training (core/job_memory.h). Each
+// absurd value is refused with exit 2 naming the key and the estimate, before the
+// command trains, loads or allocates anything (so each case takes the binary's
+// start-up, no generation) and with nothing written. A machine with more memory than
+// the estimate skips that case (the refusal would be wrong there), saying so.
+TEST_CASE("generate, sample, eval and reproduce refuse sizes that cannot fit, naming the key", "[cli][robust]") {
+  TempDir dir("sizes");
+  const std::string fx = shared_smoke_fixture(20), out = (dir.path / "out.h5").string();
+  const fs::path runs = dir.path / "runs", results = dir.path / "results";
+  struct Case {
+    std::string args, key;
+    long double estimate;
+  };
+  const std::vector<Case> cases = {
+      {fmt::format("generate configs/control/keyframes_smoke.yaml data.path={} data.num_samples=2 "
+                   "custom.length=2000000000 run.root={} output={}",
+                   fx, runs.string(), out),
+       "custom.length=2000000000", mc::generated_motions_bytes(2, 2e9L, 22)},
+      {fmt::format("sample configs/sample/t2m_smoke.yaml texts.from_split= 'texts.prompts=[walk]' "
+                   "texts.length=2000000000 output={}",
+                   out),
+       "texts.length=2000000000", mc::generated_motions_bytes(1, 2e9L, 1)},
+      {fmt::format("eval configs/eval/t2m_smoke.yaml eval.reference={} protocol.repeats=2000000000 run.root={}", fx,
+                   runs.string()),
+       "protocol.repeats=2000000000", mc::replicated_values_bytes(2e9L, 3)},
+      {fmt::format("reproduce --profile smoke --tables projflow/table1 --no-figures --set profile.repeats=2000000000 "
+                   "--set profile.data={} --set profile.runs_root={} --set profile.results_root={}",
+                   fx, runs.string(), results.string()),
+       "profile.repeats=2000000000", mc::replicated_values_bytes(2e9L, 2)},
+  };
+  for (const auto& c : cases) {
+    if (static_cast<long double>(mc::available_memory_bytes()) >= c.estimate) {
+      WARN("skipped (this machine has the memory): " << c.args);
+      continue;
+    }
+    const bool replay = c.args.rfind("reproduce", 0) == 0;
+    auto r = run_fuzzed(c.args + (replay ? " --set profile.threads=1" : " run.threads=1"), 60);
+    INFO(c.args << "\n" << r.output);
+    CHECK(r.status == 2);
+    CHECK(r.output.find(c.key) != std::string::npos);
+    CHECK(r.output.find("available") != std::string::npos);
+    CHECK(!fs::exists(out));
+    CHECK(!fs::exists(runs));
+    CHECK(!fs::exists(results));
   }
 }

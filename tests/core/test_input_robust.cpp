@@ -13,6 +13,7 @@
 #include "core/error.h"
 #include "core/h5_seal.h"
 #include "core/isolated.h"
+#include "core/job_memory.h"
 #include "core/resources.h"
 #include "core/yaml_strict.h"
 #include "data/motion_set.h"
@@ -131,4 +132,28 @@ TEST_CASE("sizes and thread counts the machine cannot give are refused naming th
   check_thread_count(usable_cpus(), "run.threads");
   CHECK_THAT(user_error_of([] { check_thread_count(4096, "run.threads"); }),
              Contains("run.threads=4096") && Contains("CPU"));
+}
+
+TEST_CASE("memory estimates of generate, sample, eval and reproduce: what runs today fits, absurd sizes do not",
+          "[core][robust]") {
+  // The standard profile: 32 samples x 3 replicates of 196 frames and 22 joints;
+  // eval's 20 resamples; a full replay of every table (86 rows, ~10 columns).
+  const long double gen = generated_motions_bytes(32, 196, 22);
+  CHECK(gen == 32.0L * 196 * 22 * 3 * 4 * 4);  // float32 xyz, four copies
+  CHECK(gen < 1e7L);
+  require_memory(gen, "generate", "", "");
+  require_memory(generated_motions_bytes(1000, 196, 22), "the paper profile's 1,000 samples", "", "");
+  require_memory(replicated_values_bytes(20, 3), "eval", "", "");
+  require_memory(replicated_values_bytes(3, 86 * 11), "reproduce", "", "");
+  require_memory(replicated_values_bytes(20, 86 * 11), "the paper profile's 20 replicates", "", "");
+  // Each formula grows linearly in every size, so the absurd values the commands are
+  // tested with (tests/cli/test_fuzz.cpp) are far past any machine's memory.
+  CHECK(generated_motions_bytes(2, 2000000000, 22) == 2 * 1000000000 * generated_motions_bytes(2, 2, 22));
+  CHECK(generated_motions_bytes(1, 2000000000, 1) > 9e10L);
+  CHECK(replicated_values_bytes(2000000000, 3) > 4.7e10L);
+  CHECK_THAT(user_error_of([] {
+               require_memory(generated_motions_bytes(8, 2e12L, 22), "this generate job", "custom.length=2e12",
+                              "lower custom.length");
+             }),
+             Contains("custom.length=2e12") && Contains("lower custom.length") && Contains("available"));
 }
