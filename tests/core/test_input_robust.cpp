@@ -148,7 +148,7 @@ TEST_CASE("memory estimates of generate, sample, eval and reproduce: what runs t
   require_memory(replicated_values_bytes(20, 86 * 11), "the paper profile's 20 replicates", "", "");
   // Each formula grows linearly in every size, so the absurd values the commands are
   // tested with (tests/cli/test_fuzz.cpp) are far past any machine's memory.
-  CHECK(generated_motions_bytes(2, 2000000000, 22) == 2 * 1000000000 * generated_motions_bytes(2, 2, 22));
+  CHECK(generated_motions_bytes(2, 2000000000, 22) == 1000000000.0L * generated_motions_bytes(2, 2, 22));
   CHECK(generated_motions_bytes(1, 2000000000, 1) > 9e10L);
   CHECK(replicated_values_bytes(2000000000, 3) > 4.7e10L);
   CHECK_THAT(user_error_of([] {
