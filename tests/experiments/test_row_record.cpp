@@ -55,7 +55,7 @@ std::string joined(const RowReuse& r) { return fmt::format("{}", fmt::join(r.rea
 
 }  // namespace
 
-TEST_CASE("row record: reused while every component keeps its weights; any change recomputes, naming it",
+TEST_CASE("row record: reused while every component keeps its weights, and any change recomputes, naming it",
           "[experiments][row_record]") {
   TempDir t("rowrec");
   std::mt19937 rng(20261124);
@@ -136,7 +136,7 @@ TEST_CASE("row record: reused while every component keeps its weights; any chang
   }
 }
 
-TEST_CASE("row record: the evaluator is recorded; an unreadable record recomputes the row", "[experiments][row_record]") {
+TEST_CASE("row record: the evaluator is recorded, and an unreadable record recomputes the row", "[experiments][row_record]") {
   TempDir t("rowrec_ev");
   std::mt19937 rng(7);
   const fs::path row = t.path / "rows" / "gt-1", ev_dir = t.path / "evaluator" / "ci";

@@ -159,7 +159,7 @@ TEST_CASE("metrics.h5 is sealed: round trip, a changed byte refused naming the f
              Contains(file.string()) && Contains("does not exist"));
 }
 
-TEST_CASE("samples.h5 is sealed; a damaged row cache is a cache miss naming the file", "[experiments][robust][io]") {
+TEST_CASE("samples.h5 is sealed, and a damaged row cache is a cache miss naming the file", "[experiments][robust][io]") {
   TempDir dir("seal_samples");
   const fs::path samples = dir.path / "samples.h5", metrics = dir.path / "metrics.h5";
   const RowSamples s = some_samples();

@@ -1,0 +1,47 @@
+"""Every Catch2 TEST_CASE name can become one ctest entry: catch_discover_tests hands the
+names to CMake as a list, so a ';' in a name splits it into entries that match no test
+(they fail under --warn NoTests with no hint why). This check names the file and line."""
+
+import os
+import re
+import sys
+import unittest
+
+REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+# The name is the first string literal after TEST_CASE( (possibly on the next line);
+# adjacent literals are joined as the compiler joins them.
+TEST_CASE = re.compile(r'TEST_CASE\s*\(\s*((?:"(?:[^"\\]|\\.)*"\s*)+)', re.S)
+
+
+def bad_names(root):
+    out = []
+    for d, _, files in os.walk(os.path.join(root, "tests")):
+        for f in files:
+            if not f.endswith(".cpp"):
+                continue
+            path = os.path.join(d, f)
+            text = open(path, encoding="utf-8").read()
+            for m in TEST_CASE.finditer(text):
+                name = "".join(re.findall(r'"((?:[^"\\]|\\.)*)"', m.group(1)))
+                if ";" in name:
+                    line = text.count("\n", 0, m.start()) + 1
+                    out.append(f"{os.path.relpath(path, root)}:{line}: {name!r}")
+    return out
+
+
+class TestNames(unittest.TestCase):
+    def test_finds_a_semicolon(self):
+        # The pattern itself: a name split over two literals, with a ';' in the second.
+        sample = 'TEST_CASE(\n  "a, b "\n  "c; d", "[x]") {'
+        m = TEST_CASE.search(sample)
+        self.assertIsNotNone(m)
+        self.assertIn(";", "".join(re.findall(r'"((?:[^"\\]|\\.)*)"', m.group(1))))
+
+    def test_no_name_has_a_semicolon(self):
+        bad = bad_names(REPO)
+        self.assertEqual(bad, [], "TEST_CASE names with ';' (CMake splits them into ctest entries that run nothing; "
+                         "use ',' instead):\n" + "\n".join(bad))
+
+
+if __name__ == "__main__":
+    unittest.main()
