@@ -20,6 +20,7 @@
 #include "core/config.h"
 #include "core/error.h"
 #include "core/yaml_strict.h"
+#include "core/h5_handle.h"
 #include "core/h5_seal.h"
 #include "core/isolated.h"
 
@@ -430,22 +431,6 @@ class YamlItemReader {
 
 // ---------------------------------------------------------------- HDF5
 
-// HDF5 prints its error stack to stderr by default; we report errors ourselves.
-class QuietHdf5 {
- public:
-  QuietHdf5() {
-    H5Eget_auto2(H5E_DEFAULT, &func_, &data_);
-    H5Eset_auto2(H5E_DEFAULT, nullptr, nullptr);
-  }
-  ~QuietHdf5() { H5Eset_auto2(H5E_DEFAULT, func_, data_); }
-  QuietHdf5(const QuietHdf5&) = delete;
-  QuietHdf5& operator=(const QuietHdf5&) = delete;
-
- private:
-  H5E_auto2_t func_ = nullptr;
-  void* data_ = nullptr;
-};
-
 // Owns one hid_t.
 // Group and dataset creation properties without modification times, so the same
 // spec written twice gives the same bytes (as motion files do).
@@ -454,29 +439,6 @@ static hid_t untimed(hid_t cls) {
   H5Pset_obj_track_times(p, false);
   return p;
 }
-
-class H5Handle {
- public:
-  H5Handle() = default;
-  H5Handle(hid_t id, herr_t (*close)(hid_t)) : id_(id), close_(close) {}
-  ~H5Handle() {
-    if (id_ >= 0 && close_) close_(id_);
-  }
-  H5Handle(H5Handle&& o) noexcept : id_(o.id_), close_(o.close_) { o.id_ = -1; }
-  H5Handle& operator=(H5Handle&& o) noexcept {
-    std::swap(id_, o.id_);
-    std::swap(close_, o.close_);
-    return *this;
-  }
-  H5Handle(const H5Handle&) = delete;
-  H5Handle& operator=(const H5Handle&) = delete;
-  hid_t get() const { return id_; }
-  bool valid() const { return id_ >= 0; }
-
- private:
-  hid_t id_ = -1;
-  herr_t (*close_)(hid_t) = nullptr;
-};
 
 H5Handle utf8_string_type() {
   H5Handle t(H5Tcopy(H5T_C_S1), H5Tclose);

@@ -16,6 +16,7 @@
 
 #include "core/atomic_file.h"
 #include "core/error.h"
+#include "core/h5_handle.h"
 #include "core/h5_seal.h"
 #include "core/isolated.h"
 #include "core/resources.h"
@@ -37,23 +38,6 @@ std::string join_dims(const std::vector<hsize_t>& dims) {
   return s + "]";
 }
 
-// HDF5 prints its whole error stack to stderr by default; we report errors
-// ourselves, so switch that off while our code runs and restore it afterwards.
-class QuietHdf5 {
- public:
-  QuietHdf5() {
-    H5Eget_auto2(H5E_DEFAULT, &func_, &data_);
-    H5Eset_auto2(H5E_DEFAULT, nullptr, nullptr);
-  }
-  ~QuietHdf5() { H5Eset_auto2(H5E_DEFAULT, func_, data_); }
-  QuietHdf5(const QuietHdf5&) = delete;
-  QuietHdf5& operator=(const QuietHdf5&) = delete;
-
- private:
-  H5E_auto2_t func_ = nullptr;
-  void* data_ = nullptr;
-};
-
 // The innermost HDF5 error description (e.g. "truncated file: eof = 1024, ..."),
 // which is the one that tells a user what is wrong with the file.
 std::string hdf5_error_text() {
@@ -69,45 +53,8 @@ std::string hdf5_error_text() {
   return text.empty() ? "unknown HDF5 error" : text;
 }
 
-// Owns one hid_t and closes it with the matching H5?close.
-class Handle {
- public:
-  Handle() = default;
-  Handle(hid_t id, herr_t (*closer)(hid_t)) : id_(id), close_(closer) {}
-  ~Handle() { reset(); }
-  Handle(Handle&& o) noexcept : id_(o.id_), close_(o.close_) { o.id_ = -1; }
-  Handle& operator=(Handle&& o) noexcept {
-    if (this != &o) {
-      reset();
-      id_ = o.id_;
-      close_ = o.close_;
-      o.id_ = -1;
-    }
-    return *this;
-  }
-  Handle(const Handle&) = delete;
-  Handle& operator=(const Handle&) = delete;
-  hid_t get() const { return id_; }
-  bool valid() const { return id_ >= 0; }
-  // Closes now and reports whether HDF5 managed to (a file close flushes).
-  bool close() {
-    bool ok = true;
-    if (id_ >= 0 && close_) ok = close_(id_) >= 0;
-    id_ = -1;
-    return ok;
-  }
-
- private:
-  void reset() {
-    if (id_ >= 0 && close_) close_(id_);
-    id_ = -1;
-  }
-  hid_t id_ = -1;
-  herr_t (*close_)(hid_t) = nullptr;
-};
-
-Handle utf8_string_type() {
-  Handle t(H5Tcopy(H5T_C_S1), H5Tclose);
+H5Handle utf8_string_type() {
+  H5Handle t(H5Tcopy(H5T_C_S1), H5Tclose);
   H5Tset_size(t.get(), H5T_VARIABLE);
   H5Tset_cset(t.get(), H5T_CSET_UTF8);
   return t;
@@ -120,21 +67,21 @@ class Writer {
   Writer(const fs::path& tmp, std::string target) : target_(std::move(target)) {
     // Modification times in object headers would make two writes of the same
     // set differ; the only time in the file is provenance.created.
-    Handle fcpl(H5Pcreate(H5P_FILE_CREATE), H5Pclose);
+    H5Handle fcpl(H5Pcreate(H5P_FILE_CREATE), H5Pclose);
     check(fcpl.valid() && H5Pset_obj_track_times(fcpl.get(), false) >= 0, "file creation properties");
     // The user block holds the checksum seal (core/h5_seal.h), written after closing.
     check(H5Pset_userblock(fcpl.get(), kH5SealBlock) >= 0, "the user block for the checksum");
-    file_ = Handle(H5Fcreate(tmp.c_str(), H5F_ACC_TRUNC, fcpl.get(), H5P_DEFAULT), H5Fclose);
+    file_ = H5Handle(H5Fcreate(tmp.c_str(), H5F_ACC_TRUNC, fcpl.get(), H5P_DEFAULT), H5Fclose);
     check(file_.valid(), "creating the file");
     str_ = utf8_string_type();
   }
 
   hid_t root() const { return file_.get(); }
 
-  Handle group(hid_t parent, const char* name) {
-    Handle gcpl(H5Pcreate(H5P_GROUP_CREATE), H5Pclose);
+  H5Handle group(hid_t parent, const char* name) {
+    H5Handle gcpl(H5Pcreate(H5P_GROUP_CREATE), H5Pclose);
     H5Pset_obj_track_times(gcpl.get(), false);
-    Handle g(H5Gcreate2(parent, name, H5P_DEFAULT, gcpl.get(), H5P_DEFAULT), H5Gclose);
+    H5Handle g(H5Gcreate2(parent, name, H5P_DEFAULT, gcpl.get(), H5P_DEFAULT), H5Gclose);
     check(g.valid(), std::string("group '") + name + "'");
     return g;
   }
@@ -150,14 +97,14 @@ class Writer {
   // `mem_type` the native one of `data`.
   void dataset(hid_t parent, const char* name, hid_t file_type, hid_t mem_type, const std::vector<hsize_t>& dims,
                const void* data, const std::vector<hsize_t>& chunk = {}, int gzip = 0) {
-    Handle space(H5Screate_simple(static_cast<int>(dims.size()), dims.data(), nullptr), H5Sclose);
-    Handle dcpl(H5Pcreate(H5P_DATASET_CREATE), H5Pclose);
+    H5Handle space(H5Screate_simple(static_cast<int>(dims.size()), dims.data(), nullptr), H5Sclose);
+    H5Handle dcpl(H5Pcreate(H5P_DATASET_CREATE), H5Pclose);
     H5Pset_obj_track_times(dcpl.get(), false);
     if (!chunk.empty()) {
       check(H5Pset_chunk(dcpl.get(), static_cast<int>(chunk.size()), chunk.data()) >= 0, std::string(name) + " chunks");
       if (gzip > 0) check(H5Pset_deflate(dcpl.get(), gzip) >= 0, std::string(name) + " gzip filter");
     }
-    Handle d(H5Dcreate2(parent, name, file_type, space.get(), H5P_DEFAULT, dcpl.get(), H5P_DEFAULT), H5Dclose);
+    H5Handle d(H5Dcreate2(parent, name, file_type, space.get(), H5P_DEFAULT, dcpl.get(), H5P_DEFAULT), H5Dclose);
     check(d.valid(), std::string("dataset '") + name + "'");
     hsize_t count = 1;
     for (auto n : dims) count *= n;
@@ -180,8 +127,8 @@ class Writer {
 
  private:
   void attr(hid_t obj, const char* name, hid_t file_type, hid_t mem_type, const void* value) {
-    Handle space(H5Screate(H5S_SCALAR), H5Sclose);
-    Handle a(H5Acreate2(obj, name, file_type, space.get(), H5P_DEFAULT, H5P_DEFAULT), H5Aclose);
+    H5Handle space(H5Screate(H5S_SCALAR), H5Sclose);
+    H5Handle a(H5Acreate2(obj, name, file_type, space.get(), H5P_DEFAULT, H5P_DEFAULT), H5Aclose);
     check(a.valid() && H5Awrite(a.get(), mem_type, value) >= 0, std::string("attribute '") + name + "'");
   }
   void check(bool ok, const std::string& what) {
@@ -191,7 +138,7 @@ class Writer {
   }
 
   std::string target_;
-  Handle file_, str_;
+  H5Handle file_, str_;
 };
 
 // ---------------------------------------------------------------- reading
@@ -240,18 +187,18 @@ class Reader {
     fail("motion file '{}': {}; {}", path_, what, fix);
   }
 
-  Handle open_dataset(const std::string& name) const {
+  H5Handle open_dataset(const std::string& name) const {
     if (!exists(name))
       bad(fmt::format("dataset '{}' is missing", name),
           "the file is not a complete motionctl motion file (docs/formats.md); re-create it");
-    Handle d(H5Dopen2(file_, name.c_str(), H5P_DEFAULT), H5Dclose);
+    H5Handle d(H5Dopen2(file_, name.c_str(), H5P_DEFAULT), H5Dclose);
     if (!d.valid())
       bad(fmt::format("cannot open dataset '{}': {}", name, hdf5_error_text()), "the file is corrupt; re-create it");
     return d;
   }
 
   std::vector<hsize_t> shape(hid_t d, const std::string& name) const {
-    Handle space(H5Dget_space(d), H5Sclose);
+    H5Handle space(H5Dget_space(d), H5Sclose);
     int rank = space.valid() ? H5Sget_simple_extent_ndims(space.get()) : -1;
     if (rank < 0) bad(fmt::format("cannot read the shape of dataset '{}': {}", name, hdf5_error_text()), kCorrupt);
     std::vector<hsize_t> dims(rank);
@@ -264,7 +211,7 @@ class Reader {
   template <class T>
   std::vector<T> numeric(const std::string& name, H5T_class_t cls, hid_t mem_type,
                          const std::vector<long long>& expected, std::vector<hsize_t>* dims_out = nullptr) const {
-    Handle d = open_dataset(name);
+    H5Handle d = open_dataset(name);
     expect_class(d.get(), name, cls);
     auto dims = shape(d.get(), name);
     expect_shape(name, dims, expected);
@@ -280,26 +227,26 @@ class Reader {
 
   // Reads a 1-D string dataset, variable-length (what we and h5py write) or fixed-length.
   std::vector<std::string> strings(const std::string& name, long long expected_n) const {
-    Handle d = open_dataset(name);
+    H5Handle d = open_dataset(name);
     expect_class(d.get(), name, H5T_STRING);
     auto dims = shape(d.get(), name);
     expect_shape(name, dims, {expected_n});
     check_size(name, dims, sizeof(std::string) + sizeof(char*));
-    Handle ftype(H5Dget_type(d.get()), H5Tclose);
+    H5Handle ftype(H5Dget_type(d.get()), H5Tclose);
     std::vector<std::string> out(dims[0]);
     if (dims[0] == 0) return out;
     if (H5Tis_variable_str(ftype.get()) > 0) {
-      Handle mtype = utf8_string_type();
+      H5Handle mtype = utf8_string_type();
       std::vector<char*> ptrs(dims[0], nullptr);
       if (H5Dread(d.get(), mtype.get(), H5S_ALL, H5S_ALL, H5P_DEFAULT, ptrs.data()) < 0)
         bad(fmt::format("cannot read dataset '{}': {}", name, hdf5_error_text()), kCorrupt);
       for (size_t i = 0; i < ptrs.size(); ++i) out[i] = ptrs[i] ? ptrs[i] : "";
-      Handle space(H5Dget_space(d.get()), H5Sclose);
+      H5Handle space(H5Dget_space(d.get()), H5Sclose);
       H5Dvlen_reclaim(mtype.get(), space.get(), H5P_DEFAULT, ptrs.data());
     } else {
       size_t width = H5Tget_size(ftype.get());
       check_size(name, dims, width);
-      Handle mtype(H5Tcopy(H5T_C_S1), H5Tclose);
+      H5Handle mtype(H5Tcopy(H5T_C_S1), H5Tclose);
       H5Tset_size(mtype.get(), width);
       H5Tset_strpad(mtype.get(), H5T_STR_NULLPAD);
       std::vector<char> buf(width * dims[0]);
@@ -314,10 +261,10 @@ class Reader {
   }
 
   std::string attr_string(const std::string& obj, const char* name) const {
-    Handle a = open_attr(obj, name, H5T_STRING);
-    Handle ftype(H5Aget_type(a.get()), H5Tclose);
+    H5Handle a = open_attr(obj, name, H5T_STRING);
+    H5Handle ftype(H5Aget_type(a.get()), H5Tclose);
     if (H5Tis_variable_str(ftype.get()) > 0) {
-      Handle mtype = utf8_string_type();
+      H5Handle mtype = utf8_string_type();
       char* p = nullptr;
       if (H5Aread(a.get(), mtype.get(), &p) < 0) bad(attr_label(obj, name) + " cannot be read", kCorrupt);
       std::string s = p ? p : "";
@@ -328,21 +275,21 @@ class Reader {
     if (width > file_size_)
       bad(fmt::format("{} claims {} bytes, more than the file holds", attr_label(obj, name), width), kCorrupt);
     std::vector<char> buf(width + 1, '\0');
-    Handle mtype(H5Tcopy(H5T_C_S1), H5Tclose);
+    H5Handle mtype(H5Tcopy(H5T_C_S1), H5Tclose);
     H5Tset_size(mtype.get(), width);
     if (H5Aread(a.get(), mtype.get(), buf.data()) < 0) bad(attr_label(obj, name) + " cannot be read", kCorrupt);
     return std::string(buf.data(), strnlen(buf.data(), width));
   }
 
   int64_t attr_int(const std::string& obj, const char* name) const {
-    Handle a = open_attr(obj, name, H5T_INTEGER);
+    H5Handle a = open_attr(obj, name, H5T_INTEGER);
     int64_t v = 0;
     if (H5Aread(a.get(), H5T_NATIVE_INT64, &v) < 0) bad(attr_label(obj, name) + " cannot be read", kCorrupt);
     return v;
   }
 
   double attr_double(const std::string& obj, const char* name) const {
-    Handle a = open_attr(obj, name, H5T_FLOAT);
+    H5Handle a = open_attr(obj, name, H5T_FLOAT);
     double v = 0;
     if (H5Aread(a.get(), H5T_NATIVE_DOUBLE, &v) < 0) bad(attr_label(obj, name) + " cannot be read", kCorrupt);
     return v;
@@ -355,21 +302,21 @@ class Reader {
     return obj == "/" ? fmt::format("attribute '{}'", name) : fmt::format("attribute '{}' of '{}'", name, obj);
   }
 
-  Handle open_attr(const std::string& obj, const char* name, H5T_class_t cls) const {
+  H5Handle open_attr(const std::string& obj, const char* name, H5T_class_t cls) const {
     if (!has_attr(obj, name))
       bad(attr_label(obj, name) + " is missing", "the file is not a complete motionctl motion file (docs/formats.md)");
-    Handle a(H5Aopen_by_name(file_, obj.c_str(), name, H5P_DEFAULT, H5P_DEFAULT), H5Aclose);
+    H5Handle a(H5Aopen_by_name(file_, obj.c_str(), name, H5P_DEFAULT, H5P_DEFAULT), H5Aclose);
     if (!a.valid()) bad(attr_label(obj, name) + " cannot be opened: " + hdf5_error_text(), kCorrupt);
-    Handle space(H5Aget_space(a.get()), H5Sclose);
+    H5Handle space(H5Aget_space(a.get()), H5Sclose);
     if (H5Sget_simple_extent_npoints(space.get()) != 1) bad(attr_label(obj, name) + " must be a single value", kFix);
-    Handle t(H5Aget_type(a.get()), H5Tclose);
+    H5Handle t(H5Aget_type(a.get()), H5Tclose);
     if (H5Tget_class(t.get()) != cls)
       bad(fmt::format("{} has the wrong type (expected {})", attr_label(obj, name), class_name(cls)), kFix);
     return a;
   }
 
   void expect_class(hid_t d, const std::string& name, H5T_class_t cls) const {
-    Handle t(H5Dget_type(d), H5Tclose);
+    H5Handle t(H5Dget_type(d), H5Tclose);
     if (H5Tget_class(t.get()) != cls)
       bad(fmt::format("dataset '{}' holds the wrong type (expected {})", name, class_name(cls)), kFix);
   }
@@ -402,7 +349,7 @@ class Reader {
 };
 
 void write_skeleton(Writer& w, const Skeleton& s) {
-  Handle g = w.group(w.root(), "skeleton");
+  H5Handle g = w.group(w.root(), "skeleton");
   const auto J = static_cast<hsize_t>(s.num_joints());
   w.strings(g.get(), "names", s.joint_names);
   w.dataset(g.get(), "parents", H5T_STD_I32LE, H5T_NATIVE_INT, {J}, s.parents.data());
@@ -608,13 +555,13 @@ void write_motion_file(const std::string& path, const MotionSet& m, const std::f
       offsets.push_back(static_cast<int64_t>(texts.size()));
     }
     {
-      Handle g = w.group(root, "captions");
+      H5Handle g = w.group(root, "captions");
       w.strings(g.get(), "text", texts);
       w.dataset(g.get(), "offsets", H5T_STD_I64LE, H5T_NATIVE_INT64, {offsets.size()}, offsets.data());
     }
     write_skeleton(w, m.skeleton);
     {
-      Handle g = w.group(root, "provenance");
+      H5Handle g = w.group(root, "provenance");
       w.attr_string(g.get(), "generator", m.provenance.generator);
       w.attr_string(g.get(), "version", m.provenance.version);
       w.attr_int(g.get(), "seed", m.provenance.seed);
@@ -623,7 +570,7 @@ void write_motion_file(const std::string& path, const MotionSet& m, const std::f
     }
     if (m.stats) {
       const NormStats& s = *m.stats;
-      Handle g = w.group(root, "stats");
+      H5Handle g = w.group(root, "stats");
       w.dataset(g.get(), "joint_mean", H5T_IEEE_F32LE, H5T_NATIVE_FLOAT, {3}, s.joint_mean.data());
       w.dataset(g.get(), "joint_std", H5T_IEEE_F32LE, H5T_NATIVE_FLOAT, {3}, s.joint_std.data());
       // Feature statistics are optional: a converted dataset carries joint statistics
@@ -655,7 +602,7 @@ MotionSet read_motion_file_unchecked(const std::string& path) {
          "tools/humanml3d_to_h5.py (docs/formats.md)",
          path);
   }
-  Handle file(H5Fopen(path.c_str(), H5F_ACC_RDONLY, H5P_DEFAULT), H5Fclose);
+  H5Handle file(H5Fopen(path.c_str(), H5F_ACC_RDONLY, H5P_DEFAULT), H5Fclose);
   if (!file.valid())
     fail("motion file '{}' cannot be opened: {}; the file is damaged or truncated, re-create it", path,
          hdf5_error_text());
@@ -682,7 +629,7 @@ MotionSet read_motion_file_unchecked(const std::string& path) {
   std::vector<hsize_t> jdims;
   {
     // Checked by hand first so a J mismatch names the skeleton rather than a bare shape.
-    Handle d = r.open_dataset("joints");
+    H5Handle d = r.open_dataset("joints");
     auto dims = r.shape(d.get(), "joints");
     if (dims.size() != 4 || dims[3] != 3)
       r.bad(fmt::format("dataset 'joints' has shape {}; it must be [N, T_max, J, 3]", join_dims(dims)),

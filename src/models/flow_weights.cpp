@@ -8,69 +8,31 @@
 #include "core/atomic_file.h"
 #include "core/config.h"
 #include "core/error.h"
+#include "core/h5_handle.h"
 #include "core/h5_seal.h"
 #include "data/skeleton.h"
 
 namespace mc {
 namespace {
 
-// HDF5 prints its error stack to stderr by default; errors are reported as
-// UserErrors naming the file instead.
-class QuietHdf5 {
- public:
-  QuietHdf5() {
-    H5Eget_auto2(H5E_DEFAULT, &func_, &data_);
-    H5Eset_auto2(H5E_DEFAULT, nullptr, nullptr);
-  }
-  ~QuietHdf5() { H5Eset_auto2(H5E_DEFAULT, func_, data_); }
-  QuietHdf5(const QuietHdf5&) = delete;
-  QuietHdf5& operator=(const QuietHdf5&) = delete;
-
- private:
-  H5E_auto2_t func_ = nullptr;
-  void* data_ = nullptr;
-};
-
-// Owns one hid_t.
-class Handle {
- public:
-  Handle(hid_t id, herr_t (*closer)(hid_t)) : id_(id), close_(closer) {}
-  ~Handle() {
-    if (id_ >= 0) close_(id_);
-  }
-  Handle(const Handle&) = delete;
-  Handle& operator=(const Handle&) = delete;
-  hid_t get() const { return id_; }
-  bool valid() const { return id_ >= 0; }
-  bool close() {  // a file's close flushes: its result matters
-    bool ok = id_ < 0 || close_(id_) >= 0;
-    id_ = -1;
-    return ok;
-  }
-
- private:
-  hid_t id_;
-  herr_t (*close_)(hid_t);
-};
-
 class Writer {
  public:
   Writer(const std::string& tmp, std::string target) : target_(std::move(target)) {
-    Handle fcpl(H5Pcreate(H5P_FILE_CREATE), H5Pclose);
+    H5Handle fcpl(H5Pcreate(H5P_FILE_CREATE), H5Pclose);
     check(fcpl.valid() && H5Pset_obj_track_times(fcpl.get(), false) >= 0, "file creation properties");
     check(H5Pset_userblock(fcpl.get(), kH5SealBlock) >= 0, "the user block for the checksum");
-    file_.reset(new Handle(H5Fcreate(tmp.c_str(), H5F_ACC_TRUNC, fcpl.get(), H5P_DEFAULT), H5Fclose));
+    file_.reset(new H5Handle(H5Fcreate(tmp.c_str(), H5F_ACC_TRUNC, fcpl.get(), H5P_DEFAULT), H5Fclose));
     check(file_->valid(), "creating the file");
-    str_.reset(new Handle(H5Tcopy(H5T_C_S1), H5Tclose));
+    str_.reset(new H5Handle(H5Tcopy(H5T_C_S1), H5Tclose));
     H5Tset_size(str_->get(), H5T_VARIABLE);
     H5Tset_cset(str_->get(), H5T_CSET_UTF8);
   }
   hid_t root() const { return file_->get(); }
 
-  std::unique_ptr<Handle> group(hid_t parent, const std::string& name) {
-    Handle gcpl(H5Pcreate(H5P_GROUP_CREATE), H5Pclose);
+  std::unique_ptr<H5Handle> group(hid_t parent, const std::string& name) {
+    H5Handle gcpl(H5Pcreate(H5P_GROUP_CREATE), H5Pclose);
     H5Pset_obj_track_times(gcpl.get(), false);
-    auto g = std::make_unique<Handle>(H5Gcreate2(parent, name.c_str(), H5P_DEFAULT, gcpl.get(), H5P_DEFAULT), H5Gclose);
+    auto g = std::make_unique<H5Handle>(H5Gcreate2(parent, name.c_str(), H5P_DEFAULT, gcpl.get(), H5P_DEFAULT), H5Gclose);
     check(g->valid(), "group '" + name + "'");
     return g;
   }
@@ -106,7 +68,7 @@ class Writer {
     }
     std::vector<hsize_t> dims(c.sizes().begin(), c.sizes().end());
     // A 0-d tensor (none in today's bundle) is stored as a scalar dataspace.
-    Handle space(dims.empty() ? H5Screate(H5S_SCALAR) : H5Screate_simple(static_cast<int>(dims.size()), dims.data(), nullptr),
+    H5Handle space(dims.empty() ? H5Screate(H5S_SCALAR) : H5Screate_simple(static_cast<int>(dims.size()), dims.data(), nullptr),
                  H5Sclose);
     dataset(parent, name, file_type, mem_type, space.get(), c.numel() > 0 ? c.data_ptr() : nullptr);
   }
@@ -115,7 +77,7 @@ class Writer {
     std::vector<const char*> ptrs;
     for (auto& v : values) ptrs.push_back(v.c_str());
     hsize_t n = values.size();
-    Handle space(H5Screate_simple(1, &n, nullptr), H5Sclose);
+    H5Handle space(H5Screate_simple(1, &n, nullptr), H5Sclose);
     dataset(parent, name, str_->get(), str_->get(), space.get(), n > 0 ? ptrs.data() : nullptr);
   }
 
@@ -134,15 +96,15 @@ class Writer {
 
  private:
   void dataset(hid_t parent, const std::string& name, hid_t file_type, hid_t mem_type, hid_t space, const void* data) {
-    Handle dcpl(H5Pcreate(H5P_DATASET_CREATE), H5Pclose);
+    H5Handle dcpl(H5Pcreate(H5P_DATASET_CREATE), H5Pclose);
     H5Pset_obj_track_times(dcpl.get(), false);
-    Handle d(H5Dcreate2(parent, name.c_str(), file_type, space, H5P_DEFAULT, dcpl.get(), H5P_DEFAULT), H5Dclose);
+    H5Handle d(H5Dcreate2(parent, name.c_str(), file_type, space, H5P_DEFAULT, dcpl.get(), H5P_DEFAULT), H5Dclose);
     check(d.valid(), "dataset '" + name + "'");
     if (data) check(H5Dwrite(d.get(), mem_type, H5S_ALL, H5S_ALL, H5P_DEFAULT, data) >= 0, "dataset '" + name + "'");
   }
   void attr(hid_t obj, const std::string& name, hid_t file_type, hid_t mem_type, const void* value) {
-    Handle space(H5Screate(H5S_SCALAR), H5Sclose);
-    Handle a(H5Acreate2(obj, name.c_str(), file_type, space.get(), H5P_DEFAULT, H5P_DEFAULT), H5Aclose);
+    H5Handle space(H5Screate(H5S_SCALAR), H5Sclose);
+    H5Handle a(H5Acreate2(obj, name.c_str(), file_type, space.get(), H5P_DEFAULT, H5P_DEFAULT), H5Aclose);
     check(a.valid() && H5Awrite(a.get(), mem_type, value) >= 0, "attribute '" + name + "'");
   }
   void check(bool ok, const std::string& what) {
@@ -152,7 +114,7 @@ class Writer {
   }
 
   std::string target_;
-  std::unique_ptr<Handle> file_, str_;
+  std::unique_ptr<H5Handle> file_, str_;
 };
 
 }  // namespace
