@@ -95,10 +95,23 @@ std::map<std::string, double> evaluator_free_metrics(const MotionSet& motions, c
                                                      const EvalProtocol& p, const std::string& constraints,
                                                      const MotionSet* source) {
   std::map<std::string, double> out;
-  if (motions.size() == 0) fail("{}: no motions to score", motions_source);
+  if (motions.size() == 0)
+    fail("{}: holds no clips (its dataset 'lengths' is empty); there are no motions to score", motions_source);
   FootSkatingOptions fo;
   fo.fps = motions.fps;
   fo.padded_196 = p.foot_skating_padded_196;
+  // What foot skating needs of a valid motion file, said here with the file, clip
+  // and dataset: the metric itself knows only "the clip" (eval/foot_skating.cpp).
+  if (fo.padded_196 && motions.t_max < fo.padded_length)
+    fail("{}: foot skating over the padded {} frames (--padded-196, protocol.foot_skating_padded_196) needs {} "
+         "stored frames per clip, but dataset 'joints' holds {} (T_max); score over each clip's own length instead",
+         motions_source, fo.padded_length, fo.padded_length, motions.t_max);
+  if (!fo.padded_196)
+    for (size_t i = 0; i < motions.size(); ++i)
+      if (motions.lengths[i] < 2)
+        fail("{}: clip {} ('{}') has 'lengths' {}; foot skating needs at least 2 frames (one transition) per clip, "
+             "so drop the clip or give it more frames",
+             motions_source, i, motions.ids[i], motions.lengths[i]);
   std::vector<JointsView> clips;
   for (size_t i = 0; i < motions.size(); ++i) clips.push_back(joints_view(motions, i));
   out["foot_skating"] = foot_skating_ratio(clips, motions.skeleton, fo);

@@ -145,6 +145,9 @@ void add_export_command(CLI::App& app) {
       return;
     }
     MotionSet m = read_motion_file(a->file);
+    // A valid file may hold no clips (an empty set round-trips); there is nothing to
+    // export then, and saying so beats exiting 0 with no file written.
+    if (m.size() == 0) fail("{}: holds no clips (its dataset 'lengths' is empty); there is nothing to export", a->file);
     std::vector<size_t> chosen = select_clips(m, a->ids, a->file);
     std::error_code ec;
     fs::create_directories(a->out, ec);

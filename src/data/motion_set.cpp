@@ -641,6 +641,10 @@ MotionSet read_motion_file_unchecked(const std::string& path) {
     if (static_cast<long long>(dims[0]) != N)
       r.bad(fmt::format("dataset 'joints' has {} clips but dataset 'lengths' has {}", dims[0], N),
             "both must have one entry per clip; re-export the file");
+    // Named here, with the shape, rather than as MotionSet::check's bare "t_max is 0".
+    if (N > 0 && dims[1] == 0)
+      r.bad(fmt::format("dataset 'joints' has shape {}: 0 frames per clip", join_dims(dims)),
+            "every clip needs at least one frame (T_max >= 1); re-export the file");
   }
   m.joints = r.numeric<float>("joints", H5T_FLOAT, H5T_NATIVE_FLOAT, {N, -1, J, 3}, &jdims);
   m.t_max = static_cast<int>(jdims[1]);
