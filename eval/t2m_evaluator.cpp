@@ -183,12 +183,7 @@ class T2MEvaluatorTrainer : public Trainable {
   // train/batch_shard.h, replicated), so its gradient is the one-process gradient
   // through its own rows.
   LossOutput loss(const std::vector<int64_t>& idx, const BatchShard& shard) override {
-    const MotionSet& set = ctx_.data->set();
-    std::vector<std::string> caps;
-    for (int64_t i : idx) {
-      const auto& c = set.captions[i];
-      caps.push_back(c[torch::randint(0, static_cast<int64_t>(c.size()), {1}).item<int64_t>()]);
-    }
+    const std::vector<std::string> caps = ctx_.data->drawn_captions(idx);
     auto [x, lengths] = sample_motions(idx, true, shard);
     auto txt = encode_texts(vocab_, shard.local(caps), cfg_.max_words);
     const int64_t n = idx.size();
@@ -217,18 +212,17 @@ class T2MEvaluatorTrainer : public Trainable {
     torch::NoGradGuard ng;
     net_->eval();
     auto idx = ctx_.data->split("val");
-    const MotionSet& set = ctx_.data->set();
     Embeddings text(idx.size(), cfg_.embed_dim), motion(idx.size(), cfg_.embed_dim);
-    for (size_t s = 0; s < idx.size(); s += 64) {
-      std::vector<int64_t> chunk(idx.begin() + s, idx.begin() + std::min(idx.size(), s + 64));
-      std::vector<std::string> caps;
-      for (int64_t i : chunk) caps.push_back(set.captions[i][0]);
+    size_t s = 0;  // the chunk's first row
+    for (const auto& chunk : chunked(idx, 64)) {
+      const std::vector<std::string> caps = ctx_.data->first_captions(chunk);
       auto [x, lengths] = sample_motions(chunk, false);
       auto txt = encode_texts(vocab_, caps, cfg_.max_words);
       auto t = net_->text->forward(txt.ids, txt.lengths).to(torch::kFloat64).contiguous();
       auto m = net_->motion->forward(x, lengths).to(torch::kFloat64).contiguous();
       text.middleRows(s, chunk.size()) = to_eigen(t);
       motion.middleRows(s, chunk.size()) = to_eigen(m);
+      s += chunk.size();
     }
     std::map<std::string, double> out{{"val_matching", matching_score(text, motion)}};
     if (idx.size() >= 32) {

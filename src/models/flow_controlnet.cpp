@@ -229,12 +229,7 @@ class FlowControlNetTrainer : public Trainable {
   // batch and cut to the shard's rows; the means divide by the whole batch's counts.
   LossOutput loss(const std::vector<int64_t>& idx, const BatchShard& shard) override {
     MotionBatch b = ctx_.data->batch(idx, ctx_.window, 1, ctx_.device, ctx_.trim_padding, shard);
-    const MotionSet& set = ctx_.data->set();
-    std::vector<std::string> caps;
-    for (int64_t i : idx) {
-      const auto& c = set.captions[i];
-      caps.push_back(c[torch::randint(0, static_cast<int64_t>(c.size()), {1}).item<int64_t>()]);
-    }
+    const std::vector<std::string> caps = ctx_.data->drawn_captions(idx);
     const int64_t B = idx.size(), T = b.joints.size(1), J = b.joints.size(2);
     auto x0 = shard.local(torch::randn({B, T, J, 3})).to(ctx_.device);
     auto t = shard.local(torch::rand({B})).to(ctx_.device);
@@ -262,34 +257,21 @@ class FlowControlNetTrainer : public Trainable {
   std::map<std::string, double> evaluate() override {
     torch::NoGradGuard ng;
     net_.branch()->eval();
-    auto idx = ctx_.data->split("val");
-    const MotionSet& set = ctx_.data->set();
     auto gen = at::make_generator<at::CPUGeneratorImpl>(20240612);
+    // Weighted by clips: each loss is already a mean over its chunk.
+    auto chunk_values = [&](double tv, const std::vector<int64_t>& chunk) {
+      FlowValidationInputs in = flow_validation_inputs(*ctx_.data, chunk, tv, gen, ctx_.device);
+      auto p = losses(in.batch, in.captions, in.x0, in.t, in.drop, control_mask(in.batch, gen), {}, {}, {});
+      return ChunkValues{{p.fm.item<double>(), p.ctrl.item<double>()}, static_cast<double>(chunk.size())};
+    };
+    const TimedValidation v = validate_at_times(cfg_.eval_t, ctx_.data->split("val"), 32, 2, chunk_values);
     std::map<std::string, double> out;
-    double fm_total = 0, ctrl_total = 0;
-    for (double tv : cfg_.eval_t) {
-      double fm = 0, ctrl = 0, n = 0;
-      for (size_t s = 0; s < idx.size(); s += 32) {
-        std::vector<int64_t> chunk(idx.begin() + s, idx.begin() + std::min(idx.size(), s + 32));
-        MotionBatch b = ctx_.data->batch(chunk, 0, 1, ctx_.device);
-        std::vector<std::string> caps;
-        for (int64_t i : chunk) caps.push_back(set.captions[i][0]);
-        const int64_t B = chunk.size();
-        auto x0 = torch::randn(b.joints.sizes(), gen, torch::TensorOptions()).to(ctx_.device);
-        auto t = torch::full({B}, tv, torch::TensorOptions().device(ctx_.device));
-        auto drop = torch::zeros({B}, torch::TensorOptions().dtype(torch::kBool).device(ctx_.device));
-        auto p = losses(b, caps, x0, t, drop, control_mask(b, gen), {}, {}, {});
-        fm += p.fm.item<double>() * B;
-        ctrl += p.ctrl.item<double>() * B;
-        n += B;
-      }
-      out[fmt::format("val_fm_t{:.2f}", tv)] = fm / std::max(1.0, n);
-      out[fmt::format("val_ctrl_t{:.2f}", tv)] = ctrl / std::max(1.0, n);
-      fm_total += fm / std::max(1.0, n);
-      ctrl_total += ctrl / std::max(1.0, n);
+    for (size_t k = 0; k < cfg_.eval_t.size(); ++k) {
+      out[fmt::format("val_fm_t{:.2f}", cfg_.eval_t[k])] = v.at_time[k][0];
+      out[fmt::format("val_ctrl_t{:.2f}", cfg_.eval_t[k])] = v.at_time[k][1];
     }
-    out["val_fm"] = fm_total / cfg_.eval_t.size();
-    out["val_ctrl"] = ctrl_total / cfg_.eval_t.size();
+    out["val_fm"] = v.mean[0];
+    out["val_ctrl"] = v.mean[1];
     return out;
   }
 

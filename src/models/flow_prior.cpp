@@ -25,8 +25,7 @@ std::string FlowPriorConfig::validate() const {
   int w = width > 0 ? width : 64 * depth, h = heads > 0 ? heads : depth;
   if (w % h != 0) return fmt::format("width {} is not a multiple of heads {}", w, h);
   if ((w / h) % 2 != 0) return fmt::format("head size width/heads = {} must be even for RoPE", w / h);
-  if (text_width % text_heads != 0)
-    return fmt::format("text_width {} is not a multiple of text_heads {}", text_width, text_heads);
+  if (auto e = text_fields_error(); !e.empty()) return e;
   if (eval_t.empty()) return "eval_t needs at least one flow time";
   if (temporal_kernel % 2 == 0) return fmt::format("temporal_kernel {} must be odd (centred on its frame)", temporal_kernel);
   if (prediction == "velocity" && loss == "clean")
@@ -44,18 +43,6 @@ FlowTransformerOptions FlowPriorConfig::transformer_options(int num_joints) cons
   o.dropout = dropout;
   o.cond_dim = text_width;
   o.temporal_kernel = temporal_kernel;
-  return o;
-}
-
-TextEncoderOptions FlowPriorConfig::text_encoder_options(int vocab_size) const {
-  TextEncoderOptions o;
-  o.vocab_size = vocab_size;
-  o.width = text_width;
-  o.layers = text_layers;
-  o.heads = text_heads;
-  o.ff = text_ff;
-  o.dropout = text_dropout;
-  o.max_words = max_words;
   return o;
 }
 
@@ -110,6 +97,18 @@ torch::Tensor FlowPriorNetImpl::null_condition(int64_t B) const { return null_te
 
 // ---------------------------------------------------------------- trainer
 
+FlowValidationInputs flow_validation_inputs(const MotionDataset& data, const std::vector<int64_t>& chunk, double t,
+                                            at::Generator& gen, torch::Device device) {
+  FlowValidationInputs in;
+  in.batch = data.batch(chunk, 0, 1, device);
+  in.captions = data.first_captions(chunk);
+  const int64_t B = chunk.size();
+  in.x0 = torch::randn(in.batch.joints.sizes(), gen, torch::TensorOptions()).to(device);
+  in.t = torch::full({B}, t, torch::TensorOptions().device(device));
+  in.drop = torch::zeros({B}, torch::TensorOptions().dtype(torch::kBool).device(device));
+  return in;
+}
+
 namespace {
 
 class FlowPriorTrainer : public Trainable {
@@ -156,12 +155,7 @@ class FlowPriorTrainer : public Trainable {
   // for the whole batch and cut to the shard's rows (train/batch_shard.h).
   LossOutput loss(const std::vector<int64_t>& idx, const BatchShard& shard) override {
     MotionBatch b = ctx_.data->batch(idx, ctx_.window, 1, ctx_.device, ctx_.trim_padding, shard);
-    const MotionSet& set = ctx_.data->set();
-    std::vector<std::string> caps;
-    for (int64_t i : idx) {
-      const auto& c = set.captions[i];
-      caps.push_back(c[torch::randint(0, static_cast<int64_t>(c.size()), {1}).item<int64_t>()]);
-    }
+    const std::vector<std::string> caps = ctx_.data->drawn_captions(idx);
     const int64_t B = idx.size();
     auto sizes = b.joints.sizes().vec();
     sizes[0] = B;
@@ -181,38 +175,23 @@ class FlowPriorTrainer : public Trainable {
   std::map<std::string, double> evaluate() override {
     torch::NoGradGuard ng;
     net_->eval();
-    auto idx = ctx_.data->split("val");
-    const MotionSet& set = ctx_.data->set();
     auto gen = at::make_generator<at::CPUGeneratorImpl>(20240611);
+    // Velocity error (eq. (3)) and clean-endpoint error, weighted by valid frames: the
+    // second compares velocity and clean networks on one scale.
+    auto chunk_values = [&](double tv, const std::vector<int64_t>& chunk) {
+      FlowValidationInputs in = flow_validation_inputs(*ctx_.data, chunk, tv, gen, ctx_.device);
+      const double w = in.batch.mask.sum().item<double>();
+      auto both = flow_loss(in.batch, in.captions, in.x0, in.t, in.drop, "both");
+      return ChunkValues{{both[0].item<double>(), both[1].item<double>()}, w};
+    };
+    const TimedValidation v = validate_at_times(cfg_.eval_t, ctx_.data->split("val"), 32, 2, chunk_values);
     std::map<std::string, double> out;
-    double total = 0, total_clean = 0;
-    for (double tv : cfg_.eval_t) {
-      double sum = 0, sum_clean = 0, weight = 0;
-      for (size_t s = 0; s < idx.size(); s += 32) {
-        std::vector<int64_t> chunk(idx.begin() + s, idx.begin() + std::min(idx.size(), s + 32));
-        MotionBatch b = ctx_.data->batch(chunk, 0, 1, ctx_.device);
-        std::vector<std::string> caps;
-        for (int64_t i : chunk) caps.push_back(set.captions[i][0]);
-        const int64_t B = chunk.size();
-        auto x0 = torch::randn(b.joints.sizes(), gen, torch::TensorOptions()).to(ctx_.device);
-        auto t = torch::full({B}, tv, torch::TensorOptions().device(ctx_.device));
-        auto drop = torch::zeros({B}, torch::TensorOptions().dtype(torch::kBool).device(ctx_.device));
-        double w = b.mask.sum().item<double>();
-        auto both = flow_loss(b, caps, x0, t, drop, "both");
-        sum += both[0].item<double>() * w;
-        sum_clean += both[1].item<double>() * w;
-        weight += w;
-      }
-      double l = sum / std::max(1.0, weight), lc = sum_clean / std::max(1.0, weight);
-      out[fmt::format("val_fm_t{:.2f}", tv)] = l;
-      out[fmt::format("val_x1_t{:.2f}", tv)] = lc;
-      total += l;
-      total_clean += lc;
+    for (size_t k = 0; k < cfg_.eval_t.size(); ++k) {
+      out[fmt::format("val_fm_t{:.2f}", cfg_.eval_t[k])] = v.at_time[k][0];
+      out[fmt::format("val_x1_t{:.2f}", cfg_.eval_t[k])] = v.at_time[k][1];
     }
-    // Velocity error (eq. (3)) and clean-endpoint error: the second compares
-    // velocity and clean networks on one scale.
-    out["val_fm"] = total / cfg_.eval_t.size();
-    out["val_x1"] = total_clean / cfg_.eval_t.size();
+    out["val_fm"] = v.mean[0];
+    out["val_x1"] = v.mean[1];
     return out;
   }
 

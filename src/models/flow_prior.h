@@ -11,11 +11,14 @@
 #include "data/skeleton.h"
 #include "data/text_vocab.h"
 #include "models/flow_transformer.h"
+#include "models/motion_dataset.h"
 #include "models/text_encoder.h"
 
 namespace mc {
 
-struct FlowPriorConfig : Config {
+// The text encoder's text_* fields (TextEncoderFields) are trained jointly, unless
+// text_encoder names a contrastively pretrained `text_clip` run (no CLIP here).
+struct FlowPriorConfig : Config, TextEncoderFields {
   // Family rule (reference-facts §2): width = 64 * depth, heads = depth; 0 follows it.
   int depth = 8;
   int width = 0;
@@ -23,14 +26,6 @@ struct FlowPriorConfig : Config {
   int mlp_hidden = 0;  // 0 = 8/3 * width rounded up to 64 (SwiGLU with the params of a 4x MLP)
   double dropout = 0.0;
   double cond_drop = 0.1;
-  // Text encoder (trained jointly, unless text_encoder names a contrastively
-  // pretrained `text_clip` run; no CLIP here).
-  int text_width = 256;
-  int text_layers = 2;
-  int text_heads = 4;
-  int text_ff = 512;
-  double text_dropout = 0.1;
-  int max_words = 32;
   std::vector<double> eval_t = {0.1, 0.3, 0.5, 0.7, 0.9};
   // What the network outputs. velocity: v = x1 - x0 (ACMDM). clean: the clean
   // endpoint x1 (x-prediction, as later absolute-coordinate flows use); the
@@ -53,12 +48,7 @@ struct FlowPriorConfig : Config {
     v("dropout", dropout, "dropout on attention probabilities and the MLP hidden", in_range(0.0, 0.9));
     v("cond_drop", cond_drop, "probability of replacing the text by the learned null embedding (for CFG)",
       in_range(0.0, 1.0));
-    v("text_width", text_width, "text encoder width (also the pooled text vector size)", at_least(8));
-    v("text_layers", text_layers, "text transformer encoder layers", in_range(1, 12));
-    v("text_heads", text_heads, "text encoder attention heads", at_least(1));
-    v("text_ff", text_ff, "text encoder feed-forward size", at_least(8));
-    v("text_dropout", text_dropout, "text encoder dropout", in_range(0.0, 0.9));
-    v("max_words", max_words, "caption length cap in tokens (incl. <sos>/<eos>)", in_range(4, 256));
+    visit_text_fields(v, "text encoder width (also the pooled text vector size)");
     v("eval_t", eval_t, "flow times at which evaluate() reports the validation loss", each(in_range(0.0, 1.0)));
     v("prediction", prediction, "network output: velocity (x1 - x0, ACMDM) or clean (the endpoint x1)",
       one_of({"velocity", "clean"}));
@@ -75,7 +65,6 @@ struct FlowPriorConfig : Config {
   }
   std::string validate() const override;
   FlowTransformerOptions transformer_options(int num_joints) const;
-  TextEncoderOptions text_encoder_options(int vocab_size) const;
 };
 
 // Everything final.pt holds: text encoder (and its adapter when pretrained), null
@@ -106,6 +95,18 @@ struct FlowPriorNetImpl : torch::nn::Module {
   torch::Tensor joint_mean, joint_std;  // (3,) buffers
 };
 TORCH_MODULE(FlowPriorNet);
+
+// The inputs of a flow model's validation loss at flow time `t` (evaluate() of the
+// prior and of its ControlNet): the chunk's whole clips with their first captions,
+// x0 drawn from `gen` (constant-seeded by the caller, so the numbers compare across
+// runs and torch's generator is left alone), t for every clip and no text dropped.
+struct FlowValidationInputs {
+  MotionBatch batch;
+  std::vector<std::string> captions;
+  torch::Tensor x0, t, drop;
+};
+FlowValidationInputs flow_validation_inputs(const MotionDataset& data, const std::vector<int64_t>& chunk, double t,
+                                            at::Generator& gen, torch::Device device);
 
 // A finished `flow_prior` run: config.yaml, checkpoints/final.pt, outputs/vocab.txt,
 // outputs/prior_meta.yaml. All tensors in and out are on device() in normalised

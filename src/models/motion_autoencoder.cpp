@@ -76,8 +76,7 @@ class MotionAutoencoderTrainer : public Trainable {
     torch::NoGradGuard ng;
     auto idx = ctx_.data->split("val");
     double err = 0, frames = 0;
-    for (size_t s = 0; s < idx.size(); s += 32) {
-      std::vector<int64_t> chunk(idx.begin() + s, idx.begin() + std::min(idx.size(), s + 32));
+    for (const auto& chunk : chunked(idx, 32)) {
       MotionBatch b = ctx_.data->batch(chunk, 0, stride_, ctx_.device);
       auto x = b.joints;
       auto y = model_->forward(x.flatten(2)).view_as(x);

@@ -1,6 +1,8 @@
 // Normalised, cropped, padded batches from a motion file.
 #include "models/motion_dataset.h"
 
+#include <algorithm>
+
 #include "core/error.h"
 
 namespace mc {
@@ -23,6 +25,30 @@ std::vector<int64_t> MotionDataset::split(const std::string& name) const {
   std::vector<int64_t> out;
   for (size_t i : set_.indices_of_split(name)) out.push_back(static_cast<int64_t>(i));
   if (out.empty()) fail("{}: split '{}' is empty", source_, name);
+  return out;
+}
+
+std::vector<std::string> MotionDataset::drawn_captions(const std::vector<int64_t>& idx) const {
+  std::vector<std::string> out;
+  out.reserve(idx.size());
+  for (int64_t i : idx) {
+    const auto& c = set_.captions[i];
+    out.push_back(c[torch::randint(0, static_cast<int64_t>(c.size()), {1}).item<int64_t>()]);
+  }
+  return out;
+}
+
+std::vector<std::string> MotionDataset::first_captions(const std::vector<int64_t>& idx) const {
+  std::vector<std::string> out;
+  out.reserve(idx.size());
+  for (int64_t i : idx) out.push_back(set_.captions[i][0]);
+  return out;
+}
+
+std::vector<std::vector<int64_t>> chunked(const std::vector<int64_t>& idx, size_t size) {
+  std::vector<std::vector<int64_t>> out;
+  for (size_t s = 0; s < idx.size(); s += size)
+    out.emplace_back(idx.begin() + s, idx.begin() + std::min(idx.size(), s + size));
   return out;
 }
 

@@ -64,6 +64,12 @@ class MotionDataset {
   MotionBatch batch(const std::vector<int64_t>& idx, int window, int round_to, const torch::Device& device,
                     bool trim = false, const BatchShard& shard = {}) const;
   int64_t length(int64_t i) const { return set_.lengths[i]; }
+  // One caption per clip of `idx`, in order. drawn_captions: uniformly among the
+  // clip's captions, one draw per clip from torch's generator (so a checkpoint
+  // resumes the same draws); the training losses use it. first_captions: each clip's
+  // first caption, the same on every call; the validation passes use it.
+  std::vector<std::string> drawn_captions(const std::vector<int64_t>& idx) const;
+  std::vector<std::string> first_captions(const std::vector<int64_t>& idx) const;
   torch::Tensor normalize(const torch::Tensor& world) const;    // [..., 3]
   torch::Tensor denormalize(const torch::Tensor& normed) const;  // [..., 3]
 
@@ -73,5 +79,9 @@ class MotionDataset {
   torch::Tensor all_;  // [N, t_max, J, 3] world
   torch::Tensor mean_, std_;
 };
+
+// `idx` cut into consecutive chunks of `size` clips (the last may be shorter): the
+// batches of the validation passes.
+std::vector<std::vector<int64_t>> chunked(const std::vector<int64_t>& idx, size_t size);
 
 }  // namespace mc

@@ -27,8 +27,7 @@ namespace nn = torch::nn;
 // ---------------------------------------------------------------- config
 
 std::string TextClipConfig::validate() const {
-  if (text_width % text_heads != 0)
-    return fmt::format("text_width {} is not a multiple of text_heads {}", text_width, text_heads);
+  if (auto e = text_fields_error(); !e.empty()) return e;
   if (motion_width % motion_heads != 0)
     return fmt::format("motion_width {} is not a multiple of motion_heads {}", motion_width, motion_heads);
   if (motion_width % 2 != 0) return fmt::format("motion_width {} must be even (sinusoidal positions)", motion_width);
@@ -36,18 +35,6 @@ std::string TextClipConfig::validate() const {
     return fmt::format("1 / init_temperature = {} exceeds max_logit_scale {}", 1.0 / init_temperature,
                        max_logit_scale);
   return "";
-}
-
-TextEncoderOptions TextClipConfig::text_encoder_options(int vocab_size) const {
-  TextEncoderOptions o;
-  o.vocab_size = vocab_size;
-  o.width = text_width;
-  o.layers = text_layers;
-  o.heads = text_heads;
-  o.ff = text_ff;
-  o.dropout = text_dropout;
-  o.max_words = max_words;
-  return o;
 }
 
 // ---------------------------------------------------------------- networks
@@ -238,12 +225,7 @@ class TextClipTrainer : public Trainable {
     std::optional<BatchRowsScope> rows;  // dropout over the deduplicated batch's rows
     if (!shard.whole()) rows.emplace(shard.rows(n));
     MotionBatch b = ctx_.data->batch(idx, ctx_.window, 1, ctx_.device, ctx_.trim_padding, shard);
-    const MotionSet& set = ctx_.data->set();
-    std::vector<std::string> caps;
-    for (int64_t i : idx) {
-      const auto& c = set.captions[i];
-      caps.push_back(c[torch::randint(0, static_cast<int64_t>(c.size()), {1}).item<int64_t>()]);
-    }
+    const std::vector<std::string> caps = ctx_.data->drawn_captions(idx);
     auto [text, motion] = embed(b, shard.local(caps));
     auto scale = shard.shared(net_->scale());
     auto l = shard.replicated(
@@ -262,14 +244,11 @@ class TextClipTrainer : public Trainable {
     torch::NoGradGuard ng;
     net_->eval();
     auto idx = ctx_.data->split("val");
-    const MotionSet& set = ctx_.data->set();
     std::vector<torch::Tensor> ts, ms;
     std::vector<std::string> all_caps;
-    for (size_t s = 0; s < idx.size(); s += 64) {
-      std::vector<int64_t> chunk(idx.begin() + s, idx.begin() + std::min(idx.size(), s + 64));
+    for (const auto& chunk : chunked(idx, 64)) {
       MotionBatch b = ctx_.data->batch(chunk, 0, 1, ctx_.device, true);
-      std::vector<std::string> caps;
-      for (int64_t i : chunk) caps.push_back(set.captions[i][0]);
+      const std::vector<std::string> caps = ctx_.data->first_captions(chunk);
       auto [t, m] = embed(b, caps);
       ts.push_back(t.cpu());
       ms.push_back(m.cpu());

@@ -16,15 +16,9 @@
 
 namespace mc {
 
-struct TextClipConfig : Config {
-  // Text side: the flow prior's text_* fields (same names, same defaults), so a
-  // prior with the same values loads these weights one-to-one.
-  int text_width = 256;
-  int text_layers = 2;
-  int text_heads = 4;
-  int text_ff = 512;
-  double text_dropout = 0.1;
-  int max_words = 32;
+// Text side: the flow prior's text_* fields (TextEncoderFields: same names, same
+// defaults), so a prior with the same values loads these weights one-to-one.
+struct TextClipConfig : Config, TextEncoderFields {
   // Motion side: only here to train the text side; never used by a prior.
   int motion_stride = 4;  // frames per motion token (a strided patch, as T2M's movement encoder's /4)
   int motion_width = 128;
@@ -36,13 +30,7 @@ struct TextClipConfig : Config {
   double max_logit_scale = 100.0;  // CLIP's clamp of 1 / temperature
   int eval_pool = 32;              // retrieval pool of evaluate() (R-precision's 32)
   void visit(FieldVisitor& v) override {
-    v("text_width", text_width, "text encoder width = the pooled vector and the contrastive embedding size",
-      at_least(8));
-    v("text_layers", text_layers, "text transformer encoder layers", in_range(1, 12));
-    v("text_heads", text_heads, "text encoder attention heads", at_least(1));
-    v("text_ff", text_ff, "text encoder feed-forward size", at_least(8));
-    v("text_dropout", text_dropout, "text encoder dropout", in_range(0.0, 0.9));
-    v("max_words", max_words, "caption length cap in tokens (incl. <sos>/<eos>)", in_range(4, 256));
+    visit_text_fields(v, "text encoder width = the pooled vector and the contrastive embedding size");
     v("motion_stride", motion_stride,
       "frames per motion token: the per-frame features of this many frames enter one Linear (cost / stride)",
       in_range(1, 16));
@@ -57,7 +45,6 @@ struct TextClipConfig : Config {
     v("eval_pool", eval_pool, "validation retrieval pool size (T2M's R-precision uses 32)", in_range(2, 1024));
   }
   std::string validate() const override;
-  TextEncoderOptions text_encoder_options(int vocab_size) const;
 };
 
 // Per-frame features [x, x - root, x_t - x_{t-1}] of the normalised joints, those of

@@ -1,11 +1,38 @@
-// The caption encoder module shared by the flow prior and `text_clip`, and caption
-// batching.
+// The caption encoder module shared by the flow prior and `text_clip`, the text
+// fields of their configs, and caption batching.
 #include "models/text_encoder.h"
 
 #include "models/sharded_dropout.h"
 
 namespace mc {
 namespace nn = torch::nn;
+
+void TextEncoderFields::visit_text_fields(FieldVisitor& v, const char* width_help) {
+  v("text_width", text_width, width_help, at_least(8));
+  v("text_layers", text_layers, "text transformer encoder layers", in_range(1, 12));
+  v("text_heads", text_heads, "text encoder attention heads", at_least(1));
+  v("text_ff", text_ff, "text encoder feed-forward size", at_least(8));
+  v("text_dropout", text_dropout, "text encoder dropout", in_range(0.0, 0.9));
+  v("max_words", max_words, "caption length cap in tokens (incl. <sos>/<eos>)", in_range(4, 256));
+}
+
+std::string TextEncoderFields::text_fields_error() const {
+  if (text_width % text_heads != 0)
+    return fmt::format("text_width {} is not a multiple of text_heads {}", text_width, text_heads);
+  return "";
+}
+
+TextEncoderOptions TextEncoderFields::text_encoder_options(int vocab_size) const {
+  TextEncoderOptions o;
+  o.vocab_size = vocab_size;
+  o.width = text_width;
+  o.layers = text_layers;
+  o.heads = text_heads;
+  o.ff = text_ff;
+  o.dropout = text_dropout;
+  o.max_words = max_words;
+  return o;
+}
 
 TextEncoderImpl::TextEncoderImpl(const TextEncoderOptions& o) {
   embedding =

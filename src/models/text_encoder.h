@@ -23,6 +23,26 @@ struct TextEncoderOptions {
   int max_words = 32;
 };
 
+// The text encoder's sizes under the keys every text-conditioned model's config
+// declares (text_width ... max_words, in this order): a base of FlowPriorConfig,
+// TokenPriorConfig and TextClipConfig, so their keys, defaults, ranges and checks
+// are written once, and a text_clip run with the flow prior's values loads
+// one-to-one into it.
+struct TextEncoderFields {
+  int text_width = 256;
+  int text_layers = 2;
+  int text_heads = 4;
+  int text_ff = 512;
+  double text_dropout = 0.1;
+  int max_words = 32;
+  // Visits the six fields (in the owning config's visit(), where they stand in its
+  // dump); `width_help` says what text_width sizes in that model.
+  void visit_text_fields(FieldVisitor& v, const char* width_help);
+  // "" or what is wrong with the sizes, for the owning config's validate().
+  std::string text_fields_error() const;
+  TextEncoderOptions text_encoder_options(int vocab_size) const;
+};
+
 // Word embeddings + learned positions + a transformer encoder, mean-pooled over
 // the real tokens (<sos> words <eos>) and projected: one vector per caption.
 struct TextEncoderImpl : torch::nn::Module {

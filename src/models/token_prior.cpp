@@ -34,12 +34,7 @@ void TokenPriorConfig::visit(FieldVisitor& v) {
   v("dropout", dropout, "dropout on attention probabilities and the MLP hidden", in_range(0.0, 0.9));
   v("cond_drop", cond_drop, "probability of replacing the text by the learned null condition (for CFG)",
     in_range(0.0, 1.0));
-  v("text_width", text_width, "text encoder width (pooled vector and text memory size)", at_least(8));
-  v("text_layers", text_layers, "text transformer encoder layers", in_range(1, 12));
-  v("text_heads", text_heads, "text encoder attention heads", at_least(1));
-  v("text_ff", text_ff, "text encoder feed-forward size", at_least(8));
-  v("text_dropout", text_dropout, "text encoder dropout", in_range(0.0, 0.9));
-  v("max_words", max_words, "caption length cap in tokens (incl. <sos>/<eos>)", in_range(4, 256));
+  visit_text_fields(v, "text encoder width (pooled vector and text memory size)");
   v("tokenizer_run", tokenizer_run, "finished vq_tokenizer run directory ('' = train tokenizer_config on demand)");
   v("tokenizer_config", tokenizer_config, "tokenizer training config run on demand when tokenizer_run is ''");
   v("tokenizer_overrides", tokenizer_overrides, "key=value overrides for tokenizer_config (e.g. run.root=...)");
@@ -58,8 +53,7 @@ void TmdPriorConfig::visit_extra(FieldVisitor& v) {
 std::string TokenPriorConfig::validate() const {
   if (width % heads != 0) return fmt::format("width {} is not a multiple of heads {}", width, heads);
   if ((width / heads) % 2 != 0) return fmt::format("head size width/heads = {} must be even for RoPE", width / heads);
-  if (text_width % text_heads != 0)
-    return fmt::format("text_width {} is not a multiple of text_heads {}", text_width, text_heads);
+  if (auto e = text_fields_error(); !e.empty()) return e;
   if (tokenizer_run.empty() && tokenizer_config.empty())
     return "set model.tokenizer_run (a finished vq_tokenizer run) or model.tokenizer_config";
   if (eval_t.empty()) return "eval_t needs at least one time";
@@ -314,12 +308,7 @@ class TokenPriorTrainer : public Trainable {
   // (train/batch_shard.h); a shard's CE and accuracy divide by the whole batch's
   // target-token count.
   LossOutput loss(const std::vector<int64_t>& idx, const BatchShard& shard) override {
-    const MotionSet& set = ctx_.data->set();
-    std::vector<std::string> caps;
-    for (int64_t i : idx) {
-      const auto& c = set.captions[i];
-      caps.push_back(c[torch::randint(0, static_cast<int64_t>(c.size()), {1}).item<int64_t>()]);
-    }
+    const std::vector<std::string> caps = ctx_.data->drawn_captions(idx);
     const int64_t B = idx.size();
     auto t = torch::rand({B});
     auto drop = torch::rand({B}) < cfg().cond_drop;
@@ -338,35 +327,24 @@ class TokenPriorTrainer : public Trainable {
   std::map<std::string, double> evaluate() override {
     torch::NoGradGuard ng;
     net_->eval();
-    auto idx = ctx_.data->split("val");
-    const MotionSet& set = ctx_.data->set();
     auto gen = at::make_generator<at::CPUGeneratorImpl>(20240611);
+    // CE and accuracy weighted by target tokens; CE also per time.
+    auto chunk_values = [&](double tv, const std::vector<int64_t>& chunk) {
+      const std::vector<std::string> caps = ctx_.data->first_captions(chunk);
+      const int64_t B = chunk.size();
+      auto t = torch::full({B}, tv);
+      auto drop = torch::zeros({B}, torch::kBool);
+      torch::Tensor noise;
+      if (!tmd_) noise = torch::rand({B, tokens_.size(1)}, gen, torch::TensorOptions());
+      auto r = token_loss(chunk, caps, t, drop, noise, &gen);
+      return ChunkValues{{r.ce.item<double>(), r.acc.item<double>()}, r.count};
+    };
+    const TimedValidation v = validate_at_times(cfg().eval_t, ctx_.data->split("val"), 32, 2, chunk_values);
     std::map<std::string, double> out;
-    double total = 0, total_acc = 0;
-    for (double tv : cfg().eval_t) {
-      double sum = 0, acc = 0, weight = 0;
-      for (size_t s = 0; s < idx.size(); s += 32) {
-        std::vector<int64_t> chunk(idx.begin() + s, idx.begin() + std::min(idx.size(), s + 32));
-        std::vector<std::string> caps;
-        for (int64_t i : chunk) caps.push_back(set.captions[i][0]);
-        const int64_t B = chunk.size();
-        auto t = torch::full({B}, tv);
-        auto drop = torch::zeros({B}, torch::kBool);
-        torch::Tensor noise;
-        if (!tmd_) noise = torch::rand({B, tokens_.size(1)}, gen, torch::TensorOptions());
-        auto r = token_loss(chunk, caps, t, drop, noise, &gen);
-        double w = r.count;
-        sum += r.ce.item<double>() * w;
-        acc += r.acc.item<double>() * w;
-        weight += w;
-      }
-      double l = sum / std::max(1.0, weight), a = acc / std::max(1.0, weight);
-      out[fmt::format("val_ce_t{:.2f}", tv)] = l;
-      total += l;
-      total_acc += a;
-    }
-    out["val_ce"] = total / cfg().eval_t.size();
-    out["val_acc"] = total_acc / cfg().eval_t.size();
+    for (size_t k = 0; k < cfg().eval_t.size(); ++k)
+      out[fmt::format("val_ce_t{:.2f}", cfg().eval_t[k])] = v.at_time[k][0];
+    out["val_ce"] = v.mean[0];
+    out["val_acc"] = v.mean[1];
     if (tmd_) {
       // How concentrated the corruption path is on this codebook (issue 15): mean
       // q_t(x1|x1) and effective codes exp(H) per t, for the path trained with and for

@@ -14,26 +14,22 @@
 #include "data/motion_set.h"
 #include "data/skeleton.h"
 #include "data/text_vocab.h"
+#include "models/text_encoder.h"
 #include "models/token_transformer.h"
 #include "models/vq_tokenizer.h"
 
 namespace mc {
 
 // `model:` section shared by both token priors; the subclasses pick the type.
-struct TokenPriorConfig : Config, DeclaresDependencies {
+// The text encoder's text_* fields (TextEncoderFields) are trained jointly, as the
+// flow prior's (no pretrained CLIP here).
+struct TokenPriorConfig : Config, TextEncoderFields, DeclaresDependencies {
   int depth = 8;
   int width = 384;
   int heads = 6;
   int mlp_hidden = 0;
   double dropout = 0.1;
   double cond_drop = 0.1;
-  // Text encoder (trained jointly, as the flow prior's; no pretrained CLIP here).
-  int text_width = 256;
-  int text_layers = 2;
-  int text_heads = 4;
-  int text_ff = 512;
-  double text_dropout = 0.1;
-  int max_words = 32;
   // The tokenizer: a finished run, or a tokenizer training config run on demand.
   std::string tokenizer_run;
   std::string tokenizer_config = "configs/tokenizer/vq_tiny.yaml";

@@ -65,6 +65,23 @@ class Trainable {
   virtual void save_artifacts(const fs::path& outputs_dir) { (void)outputs_dir; }
 };
 
+// The validation losses the priors' evaluate() report at fixed times (flow times,
+// TMD times, mask ratios): `chunk_values(t, chunk)` gives one chunk's
+// `num_values` values and their weight (its valid frames, clips or target tokens), for every chunk of
+// `chunk_size` clips of `idx` at every t of `times`, in order (so a generator the
+// callback draws from is used in the same order on every call).
+struct ChunkValues {
+  std::vector<double> values;
+  double weight = 0;
+};
+struct TimedValidation {
+  std::vector<std::vector<double>> at_time;  // [time][value]: the chunks' weighted mean at that time
+  std::vector<double> mean;                  // [value]: the mean of at_time over the times
+};
+TimedValidation validate_at_times(const std::vector<double>& times, const std::vector<int64_t>& idx, size_t chunk_size,
+                                  size_t num_values,
+                                  const std::function<ChunkValues(double, const std::vector<int64_t>&)>& chunk_values);
+
 using TrainableFactory = std::function<std::unique_ptr<Trainable>(const Config& model_cfg, const TrainContext& ctx)>;
 void register_trainable(const std::string& type, TrainableFactory make);
 std::unique_ptr<Trainable> make_trainable(const Component& model, const TrainContext& ctx);

@@ -504,8 +504,7 @@ class VqTokenizerTrainer : public Trainable {
     const int J = set.num_joints();
     Reconstructed r;
     r.counts = torch::zeros({cfg_.codebook_size}, torch::kLong);
-    for (size_t s = 0; s < idx.size(); s += 32) {
-      std::vector<int64_t> chunk(idx.begin() + s, idx.begin() + std::min(idx.size(), s + 32));
+    for (const auto& chunk : chunked(idx, 32)) {
       MotionBatch b = ctx_.data->batch(chunk, 0, stride_, ctx_.device);
       auto ids = model_->encode(b.joints.flatten(2), b.mask);
       auto y = ctx_.data->denormalize(model_->decode(ids).view_as(b.joints)).to(torch::kCPU).contiguous();
