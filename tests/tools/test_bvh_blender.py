@@ -12,22 +12,15 @@ import sys
 import tempfile
 import unittest
 
-try:
-    import numpy as np
-    import h5py  # noqa: F401
-except ImportError as e:
-    print(f"skipping: {e} (run with /usr/bin/python3)")
-    sys.exit(77)
+from tools_test_util import BINARY, REPO, require_modules, skip
 
-REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-sys.path.insert(0, os.path.join(REPO, "tools"))
+require_modules("numpy", "h5py")
+import numpy as np  # noqa: E402
 import motionio  # noqa: E402
 
-BINARY = os.environ.get("MOTIONCTL_BINARY") or os.path.join(REPO, "build", "motionctl")
 BLENDER = shutil.which("blender")
 if BLENDER is None or not os.access(BINARY, os.X_OK):
-    print("skipping: needs Debian's blender and the motionctl binary (set MOTIONCTL_BINARY)")
-    sys.exit(77)
+    skip("needs Debian's blender and the motionctl binary (set MOTIONCTL_BINARY)")
 
 # Run inside Blender: import each BVH with the stock importer (Y up, -Z forward: Blender's
 # defaults for BVH) and report the world position of every bone head at every frame.

@@ -14,24 +14,16 @@ import sys
 import tempfile
 import unittest
 
-try:
-    import numpy as np
-    import h5py
-except ImportError as e:  # wrong interpreter: tell ctest "skipped", not "failed"
-    print(f"skipping: {e} (run with /usr/bin/python3)")
-    sys.exit(77)
+from tools_test_util import BINARY, REPO, TOOLS, require_binary, require_modules
 
-REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-TOOLS = os.path.join(REPO, "tools")
-BINARY = os.environ.get("MOTIONCTL_BINARY") or os.path.join(REPO, "build", "motionctl")
-sys.path.insert(0, TOOLS)
+require_modules("numpy", "h5py")
+import numpy as np  # noqa: E402
+import h5py  # noqa: E402
 import motionio  # noqa: E402
 import flow_reference  # noqa: E402
 from flow_reference import FlowReference, FlowWeightsError  # noqa: E402
 
-if not os.access(BINARY, os.X_OK):
-    print(f"skipping: no motionctl binary at {BINARY} (set MOTIONCTL_BINARY)")
-    sys.exit(77)
+require_binary()
 
 TOLERANCE = 1e-4
 

@@ -9,18 +9,13 @@ import sys
 import tempfile
 import unittest
 
-try:
-    import numpy as np
-    import h5py  # noqa: F401  (the tools need it; skip early if absent)
-except ImportError as e:  # wrong interpreter: tell ctest "skipped", not "failed"
-    print(f"skipping: {e} (run with /usr/bin/python3)")
-    sys.exit(77)
+from tools_test_util import REPO, TOOLS, require_modules
 
-REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-TOOLS = os.path.join(REPO, "tools")
+require_modules("numpy", "h5py")  # h5py: the tools need it
+import numpy as np  # noqa: E402
+
 CONVERTER = os.path.join(TOOLS, "humanml3d_to_h5.py")
 REAL_CLIP = os.path.join(REPO, "..", "shared", "reference", "humanml3d", "012314_new_joints.npy")
-sys.path.insert(0, TOOLS)
 import motionio  # noqa: E402
 
 

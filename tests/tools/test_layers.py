@@ -9,9 +9,9 @@ import sys
 import tempfile
 import unittest
 
-REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-CHECK = os.path.join(REPO, "tools", "check_layers.py")
-sys.path.insert(0, os.path.join(REPO, "tools"))
+from tools_test_util import REPO, TOOLS
+
+CHECK = os.path.join(TOOLS, "check_layers.py")
 import check_layers  # noqa: E402
 
 

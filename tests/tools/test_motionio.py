@@ -3,19 +3,14 @@
 
 import os
 import shutil
-import sys
 import tempfile
 import unittest
 
-try:
-    import numpy as np
-    import h5py
-except ImportError as e:  # wrong interpreter: tell ctest "skipped", not "failed"
-    print(f"skipping: {e} (run with /usr/bin/python3)")
-    sys.exit(77)
+from tools_test_util import require_modules
 
-REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-sys.path.insert(0, os.path.join(REPO, "tools"))
+require_modules("numpy", "h5py")
+import numpy as np  # noqa: E402
+import h5py  # noqa: E402
 import motionio  # noqa: E402
 from motionio import MotionFileError  # noqa: E402
 

@@ -14,23 +14,16 @@ import sys
 import tempfile
 import unittest
 
-try:
-    import numpy as np
-    import h5py  # noqa: F401
-except ImportError as e:  # wrong interpreter: tell ctest "skipped", not "failed"
-    print(f"skipping: {e} (run with /usr/bin/python3)")
-    sys.exit(77)
+from tools_test_util import BINARY, REPO, TOOLS, require_binary, require_modules
 
-REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-TOOLS = os.path.join(REPO, "tools")
-BINARY = os.environ.get("MOTIONCTL_BINARY") or os.path.join(REPO, "build", "motionctl")
+require_modules("numpy", "h5py")
+import numpy as np  # noqa: E402
+import h5py  # noqa: E402
+
 REAL_CLIP = os.path.join(REPO, "..", "shared", "reference", "humanml3d", "012314_new_joints.npy")
-sys.path.insert(0, TOOLS)
 import motionio  # noqa: E402
 
-if not os.access(BINARY, os.X_OK):
-    print(f"skipping: no motionctl binary at {BINARY} (set MOTIONCTL_BINARY)")
-    sys.exit(77)
+require_binary()
 
 # HumanML3D's mirror (its motion_representation.ipynb): negate x, swap left and right joints.
 MIRROR = [0, 2, 1, 3, 5, 4, 6, 8, 7, 9, 11, 10, 12, 14, 13, 15, 17, 16, 19, 18, 21, 20]

@@ -9,19 +9,14 @@ import sys
 import tempfile
 import unittest
 
-try:
-    import numpy as np
-    import h5py
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.image as plt_image
-except ImportError as e:  # wrong interpreter: tell ctest "skipped", not "failed"
-    print(f"skipping: {e} (run with /usr/bin/python3)")
-    sys.exit(77)
+from tools_test_util import TOOLS, require_modules
 
-REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-TOOLS = os.path.join(REPO, "tools")
-sys.path.insert(0, TOOLS)
+require_modules("numpy", "h5py", "matplotlib")
+import numpy as np  # noqa: E402
+import h5py  # noqa: E402
+import matplotlib  # noqa: E402
+matplotlib.use("Agg")
+import matplotlib.image as plt_image  # noqa: E402
 import motionio  # noqa: E402
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"

@@ -7,7 +7,7 @@ import re
 import sys
 import unittest
 
-REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+from tools_test_util import REPO
 # The name is the first string literal after TEST_CASE( (possibly on the next line);
 # adjacent literals are joined as the compiler joins them.
 TEST_CASE = re.compile(r'TEST_CASE\s*\(\s*((?:"(?:[^"\\]|\\.)*"\s*)+)', re.S)
