@@ -105,10 +105,10 @@ void bench_anchorroute(const AnchorrouteBenchOptions& o, std::ostream& out) {
       L = std::max<int64_t>(L, (tasks[i].length + s - 1) / s);
       caps.push_back(tasks[i].caption);
     }
-    auto feats = torch::zeros({batch, L * s, adapter_feature_width(a.cfg.body_joints)});
+    auto feats = torch::zeros({batch, L * s, adapter_feature_width(a.cfg.body_joints, a.cfg.features)});
     auto valid = torch::zeros({batch, L}, torch::kBool);
     for (int64_t i = 0; i < batch; ++i) {
-      feats[i].narrow(0, 0, sets[i].frames).copy_(adapter_features(sets[i], a.cfg.body_joints, a.cfg.features.delta_scale));
+      feats[i].narrow(0, 0, sets[i].frames).copy_(adapter_features(sets[i], a.cfg.body_joints, a.cfg.features));
       valid[i].narrow(0, 0, (tasks[i].length + s - 1) / s).fill_(true);
     }
     torch::NoGradGuard ng;

@@ -397,51 +397,221 @@ AnchorFeatureLayout anchor_feature_layout(AnchorFamily family, const std::vector
   return L;
 }
 
-FeatureMatrix anchor_features(const AnchorSet& set, const AnchorFeatureLayout& layout) {  // eqs. (5)-(6)
+namespace {
+
+// One group's interpolation prior (eq. (5)): its controlled world axes, anchor frames
+// (ascending: sets are sorted by frame), anchor values and the prior on
+// [times.front(), times.back()].
+struct GroupPrior {
+  std::vector<int> chan;
+  std::vector<int> times;
+  Eigen::MatrixXd V, P;
+  bool defined(int t) const { return !times.empty() && t >= times.front() && t <= times.back(); }
+  // Axis c (0, 1, 2) of the prior at frame t (defined(t)); 0 for an uncontrolled axis.
+  double at(int t, int c) const {
+    for (size_t k = 0; k < chan.size(); ++k)
+      if (chan[k] == c) return P(t - times.front(), static_cast<Eigen::Index>(k));
+    return 0.0;
+  }
+  double anchor(size_t n, int c) const {
+    for (size_t k = 0; k < chan.size(); ++k)
+      if (chan[k] == c) return V(static_cast<Eigen::Index>(n), static_cast<Eigen::Index>(k));
+    return 0.0;
+  }
+};
+
+GroupPrior group_prior(const AnchorSet& set, const AnchorFeatureLayout& layout, int g) {
+  GroupPrior r;
+  for (int c = 0; c < 3; ++c)
+    if (layout.axes[g][c]) r.chan.push_back(c);
+  std::vector<Eigen::Vector3d> vals;
+  for (const auto& a : set.anchors)
+    if (a.joint == layout.joints[g]) {
+      r.times.push_back(a.frame);
+      vals.push_back(a.value);
+    }
+  if (r.times.empty()) return r;
+  r.V.resize(static_cast<Eigen::Index>(r.times.size()), static_cast<Eigen::Index>(r.chan.size()));
+  for (size_t n = 0; n < r.times.size(); ++n)
+    for (size_t k = 0; k < r.chan.size(); ++k) r.V(n, k) = vals[n][r.chan[k]];
+  r.P = interpolate_anchor_values(r.times, r.V);
+  return r;
+}
+
+void check_features_input(const AnchorSet& set, const AnchorFeatureLayout& layout, const char* what) {
   if (set.family != layout.family)
-    fail("anchor features: a {} anchor set cannot use a {} feature layout", family_name(set.family),
+    fail("{}: a {} anchor set cannot use a {} feature layout", what, family_name(set.family),
          family_name(layout.family));
+  for (const auto& a : set.anchors) {
+    auto it = std::find(layout.joints.begin(), layout.joints.end(), a.joint);
+    if (it == layout.joints.end())
+      fail("{}: the anchor at frame {} is on joint {}, which the feature layout does not cover", what, a.frame,
+           a.joint);
+  }
+}
+
+}  // namespace
+
+FeatureMatrix anchor_features(const AnchorSet& set, const AnchorFeatureLayout& layout) {  // eqs. (5)-(6)
+  check_features_input(set, layout, "anchor features");
   const int T = set.frames, d = layout.d_f, G = layout.groups();
   FeatureMatrix f = FeatureMatrix::Zero(T, layout.width());
   int col = 0;
   for (int g = 0; g < G; ++g) {
-    const int joint = layout.joints[g];
-    std::vector<int> chan;
-    for (int c = 0; c < 3; ++c)
-      if (layout.axes[g][c]) chan.push_back(c);
-    const int dg = static_cast<int>(chan.size());
-    std::vector<int> times;
-    std::vector<Eigen::Vector3d> vals;
-    for (const auto& a : set.anchors)
-      if (a.joint == joint) {
-        times.push_back(a.frame);
-        vals.push_back(a.value);
+    const GroupPrior gp = group_prior(set, layout, g);
+    const int dg = static_cast<int>(gp.chan.size());
+    if (!gp.times.empty()) {
+      for (size_t n = 0; n < gp.times.size(); ++n) {  // m^a (.) a, m^a
+        for (int k = 0; k < dg; ++k) f(gp.times[n], col + k) = static_cast<float>(gp.V(n, k));
+        f(gp.times[n], 3 * d + G + g) = 1.f;
       }
-    if (!times.empty()) {
-      Eigen::MatrixXd V(times.size(), dg);
-      for (size_t n = 0; n < times.size(); ++n)
-        for (int k = 0; k < dg; ++k) V(n, k) = vals[n][chan[k]];
-      for (size_t n = 0; n < times.size(); ++n) {  // m^a (.) a, m^a
-        for (int k = 0; k < dg; ++k) f(times[n], col + k) = static_cast<float>(V(n, k));
-        f(times[n], 3 * d + G + g) = 1.f;
-      }
-      Eigen::MatrixXd P = interpolate_anchor_values(times, V);
-      const int t0 = times.front(), t1 = times.back();
+      const int t0 = gp.times.front(), t1 = gp.times.back();
       for (int t = t0; t <= t1; ++t) {  // m^p (.) p, m^p, Delta p (eq. (6))
         for (int k = 0; k < dg; ++k) {
-          f(t, d + col + k) = static_cast<float>(P(t - t0, k));
-          if (t > t0) f(t, 2 * d + col + k) = static_cast<float>(P(t - t0, k) - P(t - t0 - 1, k));
+          f(t, d + col + k) = static_cast<float>(gp.P(t - t0, k));
+          if (t > t0) f(t, 2 * d + col + k) = static_cast<float>(gp.P(t - t0, k) - gp.P(t - t0 - 1, k));
         }
         f(t, 3 * d + g) = 1.f;
       }
     }
     col += dg;
   }
-  for (const auto& a : set.anchors) {
-    auto it = std::find(layout.joints.begin(), layout.joints.end(), a.joint);
-    if (it == layout.joints.end())
-      fail("anchor features: the anchor at frame {} is on joint {}, which the feature layout does not cover", a.frame,
-           a.joint);
+  return f;
+}
+
+// ------------------------------------------------------------------ path-frame features
+
+int path_group_width(const AnchorFeatureLayout& layout, int g) {
+  const bool y = layout.axes[g][1];
+  const int kinematics = y ? 4 : 2, anchor = (y ? 3 : 2) + 1;  // displacement + time
+  return kinematics + 2 * anchor + 2 + (layout.family == AnchorFamily::body_point ? 3 : 0);
+}
+
+int path_feature_width(const AnchorFeatureLayout& layout) {
+  int w = 0;
+  for (int g = 0; g < layout.groups(); ++g) w += path_group_width(layout, g);
+  return w;
+}
+
+namespace {
+
+// The path heading psi_t over a group's prior range (index t - t0); see anchor_path_features.
+struct PathKinematics {
+  std::vector<double> vx, vz, vy, speed, psi;
+};
+
+PathKinematics path_kinematics(const GroupPrior& gp) {
+  PathKinematics k;
+  const int t0 = gp.times.front(), t1 = gp.times.back(), n = t1 - t0 + 1;
+  k.vx.assign(n, 0.0);
+  k.vz.assign(n, 0.0);
+  k.vy.assign(n, 0.0);
+  k.speed.assign(n, 0.0);
+  k.psi.assign(n, 0.0);
+  for (int i = 0; i < n; ++i) {
+    // Backward difference (eq. (6)'s Delta p); the first frame takes the forward one.
+    const int a = i > 0 ? i - 1 : 0, b = i > 0 ? i : std::min(1, n - 1);
+    k.vx[i] = gp.at(t0 + b, 0) - gp.at(t0 + a, 0);
+    k.vy[i] = gp.at(t0 + b, 1) - gp.at(t0 + a, 1);
+    k.vz[i] = gp.at(t0 + b, 2) - gp.at(t0 + a, 2);
+    k.speed[i] = std::hypot(k.vx[i], k.vz[i]);
+  }
+  int first = -1, fastest = 0;
+  for (int i = 0; i < n; ++i) {
+    if (first < 0 && k.speed[i] >= kPathMinSpeed) first = i;
+    if (k.speed[i] > k.speed[fastest]) fastest = i;
+  }
+  const int seed = first >= 0 ? first : fastest;
+  double psi = k.speed[seed] > 0 ? std::atan2(k.vx[seed], k.vz[seed]) : 0.0;
+  for (int i = 0; i < n; ++i) {
+    if (k.speed[i] >= kPathMinSpeed) psi = std::atan2(k.vx[i], k.vz[i]);
+    k.psi[i] = psi;
+  }
+  return k;
+}
+
+double wrap_angle(double a) { return std::atan2(std::sin(a), std::cos(a)); }
+
+// World xz (dx, dz) in the frame rotated by -psi: x' lateral, z' along the heading.
+void to_path_frame(double psi, double dx, double dz, double& x, double& z) {
+  const double c = std::cos(psi), s = std::sin(psi);
+  x = c * dx - s * dz;
+  z = s * dx + c * dz;
+}
+
+}  // namespace
+
+FeatureMatrix anchor_path_features(const AnchorSet& set, const AnchorFeatureLayout& layout) {
+  check_features_input(set, layout, "anchor path features");
+  const int T = set.frames, G = layout.groups();
+  FeatureMatrix f = FeatureMatrix::Zero(T, path_feature_width(layout));
+  std::vector<GroupPrior> priors;
+  std::vector<PathKinematics> kin(G);
+  for (int g = 0; g < G; ++g) {
+    priors.push_back(group_prior(set, layout, g));
+    if (!priors[g].times.empty()) kin[g] = path_kinematics(priors[g]);
+  }
+  int root = -1;  // the root group, for body points' root-relative channels
+  if (layout.family == AnchorFamily::body_point)
+    for (int g = 0; g < G; ++g)
+      if (layout.joints[g] == 0) root = g;
+  const double rate = kPathFrameRate;
+  int col = 0;
+  for (int g = 0; g < G; ++g) {
+    const GroupPrior& gp = priors[g];
+    const bool has_y = layout.axes[g][1];
+    const int w = path_group_width(layout, g);
+    if (gp.times.empty()) {
+      col += w;
+      continue;
+    }
+    const PathKinematics& k = kin[g];
+    const int t0 = gp.times.front(), t1 = gp.times.back();
+    for (int t = t0; t <= t1; ++t) {
+      const int i = t - t0;
+      int c = col;
+      auto put = [&](double v) { f(t, c++) = static_cast<float>(v); };
+      put(k.speed[i] * rate);
+      double turn = 0.0;
+      if (i > 0) {
+        const double gate = std::min(1.0, std::min(k.speed[i], k.speed[i - 1]) / kPathMinSpeed);
+        turn = wrap_angle(k.psi[i] - k.psi[i - 1]) * gate * rate;
+      }
+      put(turn);
+      if (has_y) {
+        put(k.vy[i] * rate);
+        put(gp.at(t, 1));
+      }
+      // Next (strictly later) and previous (strictly earlier) anchors in the path frame at t.
+      auto upper = std::upper_bound(gp.times.begin(), gp.times.end(), t);
+      auto lower = std::lower_bound(gp.times.begin(), gp.times.end(), t);
+      const int next = upper == gp.times.end() ? -1 : static_cast<int>(upper - gp.times.begin());
+      const int prev = lower == gp.times.begin() ? -1 : static_cast<int>(lower - gp.times.begin()) - 1;
+      for (int n : {next, prev}) {
+        if (n < 0) {
+          c += has_y ? 4 : 3;
+          continue;
+        }
+        double x, z;
+        to_path_frame(k.psi[i], gp.anchor(n, 0) - gp.at(t, 0), gp.anchor(n, 2) - gp.at(t, 2), x, z);
+        put(x);
+        if (has_y) put(gp.anchor(n, 1) - gp.at(t, 1));
+        put(z);
+        put(std::abs(gp.times[n] - t) / rate);
+      }
+      put(1.0);  // m^p
+      put(std::binary_search(gp.times.begin(), gp.times.end(), t) ? 1.0 : 0.0);  // m^a
+      if (layout.family == AnchorFamily::body_point && root >= 0 && root != g && priors[root].defined(t)) {
+        const GroupPrior& rp = priors[root];
+        const double psi = kin[root].psi[t - rp.times.front()];
+        double x, z;
+        to_path_frame(psi, gp.at(t, 0) - rp.at(t, 0), gp.at(t, 2) - rp.at(t, 2), x, z);
+        put(x);
+        put(gp.at(t, 1) - rp.at(t, 1));
+        put(z);
+      }
+    }
+    col += w;
   }
   return f;
 }

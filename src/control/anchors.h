@@ -122,7 +122,7 @@ struct AnchorFeatureLayout {
   int groups() const { return static_cast<int>(joints.size()); }
   int width() const { return 3 * d_f + 2 * groups(); }
 };
-// The layout for `family`; body_point needs the group joints (e.g. the protocol's
+// The layout for `family` (also of anchor_path_features); body_point needs the group joints (e.g. the protocol's
 // six), fixed so every sample of a model has the same width.
 AnchorFeatureLayout anchor_feature_layout(AnchorFamily family, const std::vector<int>& body_joints = {});
 
@@ -130,6 +130,43 @@ using FeatureMatrix = Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic, Eigen
 // Eqs. (5)-(6): [set.frames, layout.width()] features. UserError if an anchor's
 // joint or family is not in the layout.
 FeatureMatrix anchor_features(const AnchorSet& set, const AnchorFeatureLayout& layout);
+
+// ------------------------------------------------------------------ path-frame features (issue 15, ours)
+
+// The same anchors said in the frame of the interpolation prior's own path instead of
+// the world's: what a translation-invariant token encodes locally (heading change, root
+// displacement in the facing frame, height), so a token-aligned memory need not
+// integrate the heading over earlier tokens. Every channel is unchanged when the whole
+// anchor set is rotated about y and translated in xz (height and vertical channels also
+// under any xz translation; nothing is invariant to a vertical shift of the floor).
+// Per group, defined on the prior's range [first anchor, last anchor] and 0 elsewhere:
+//   speed        |v_xz| * kPathFrameRate (m/s), v = p_t - p_{t-1} (at the first prior
+//                frame the forward difference, so the range starts at its speed)
+//   turn         the change of the path heading psi_t = atan2(v_x, v_z) from t - 1 to t
+//                (wrapped to (-pi, pi]) * kPathFrameRate (rad/s), scaled by
+//                min(1, speed / kPathMinSpeed) of the slower frame so a standing path's
+//                jitter reads as no turn; 0 at the first prior frame
+//   [vy, height] (groups with y) v_y * kPathFrameRate (m/s), p_y (m)
+//   next         the next anchor strictly after t, minus p_t, in the path frame at t:
+//                x' (lateral), [y (up)], z' (along the path), metres; then the time to
+//                it, seconds (frames / kPathFrameRate); all 0 when there is none
+//   prev         the same for the last anchor strictly before t (time since it)
+//   m^p, m^a     as in anchor_features
+//   [rel root]   (body_point groups) p_t minus the root group's prior, in the root
+//                path's frame (x', y, z'), where both priors are defined (the layout
+//                lists joint 0 and the set anchors it), else 0
+// The path frame at t rotates world xz by -psi_t (the tokenizer's facing-frame
+// convention, data/features.*: heading 0 faces +Z). psi_t is kept from the last frame
+// moving at kPathMinSpeed or more (a standing path has no direction); frames before the
+// first such frame take its heading, and a path that never moves that fast takes the
+// heading of its fastest frame.
+constexpr double kPathFrameRate = 20.0;  // frames per second the rate channels are said in (HumanML3D's rate)
+constexpr double kPathMinSpeed = 0.005;  // m per frame (0.1 m/s at 20 fps): slower reads as standing
+// Channels of group g's block, and the whole block's width (groups side by side).
+int path_group_width(const AnchorFeatureLayout& layout, int g);
+int path_feature_width(const AnchorFeatureLayout& layout);
+// [set.frames, path_feature_width(layout)]. UserError as anchor_features.
+FeatureMatrix anchor_path_features(const AnchorSet& set, const AnchorFeatureLayout& layout);
 
 // ------------------------------------------------------------------ support (eqs. (7)-(9))
 

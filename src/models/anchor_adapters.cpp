@@ -55,6 +55,11 @@ void AdapterFeatureConfig::visit(FieldVisitor& v) {
     "multiplies eq. (6)'s path-difference channels Delta p (metres per frame) so the root's required speed "
     "reaches the scale of the positions (1 = as written; 20 = metres per second at 20 fps)",
     in_range(1e-3, 1e3));
+  v("frame", frame,
+    "frame the anchors are said in: world (eqs. (5)-(6): anchor values, prior, Delta p in world metres), path "
+    "(ours: speed, turn rate, vertical speed, height and the next/previous anchor in the frame of the "
+    "interpolation prior's own path, invariant to rotating and moving the anchor set; docs/choices.md) or both",
+    one_of({"world", "path", "both"}));
 }
 
 void AnchorAdapterConfig::visit(FieldVisitor& v) {
@@ -81,7 +86,7 @@ void AnchorAdapterConfig::visit(FieldVisitor& v) {
   v("anchorkv", anchorkv, "AnchorKV's memory attention (defaults: eq. (15) as written)");
   v("training", training, "where controlled training spends its signal, and the zeroed-feature audit twin "
     "(defaults: uniform t, real features)");
-  v("features", features, "scale of the adapter's input features (default: eqs. (5)-(6) as written)");
+  v("features", features, "the adapter's input features: frame and scale (default: eqs. (5)-(6) as written)");
   v("lambda_anc", lambda_anc, "lambda_anc of eq. (16) (0 = CE only, Table IV 'without anchor loss')", at_least(0.0));
   v("delta", delta, "support radius delta of eqs. (7)-(10), frames", in_range(0, 50));
   v("cond_drop", cond_drop, "probability of the null text during adapter training (keeps CFG usable)",
@@ -106,25 +111,41 @@ namespace {
 const AnchorFamily kFamilies[3] = {AnchorFamily::root_3d, AnchorFamily::planar_root, AnchorFamily::body_point};
 }
 
-int64_t adapter_feature_width(const std::vector<int>& body_joints) {
+int64_t adapter_feature_width(const std::vector<int>& body_joints, const AdapterFeatureConfig& features) {
   int64_t w = 3;
-  for (auto f : kFamilies) w += anchor_feature_layout(f, body_joints).width();
+  for (auto f : kFamilies) {
+    auto layout = anchor_feature_layout(f, body_joints);
+    if (features.world()) w += layout.width();
+    if (features.path()) w += path_feature_width(layout);
+  }
   return w;
 }
 
-torch::Tensor adapter_features(const AnchorSet& set, const std::vector<int>& body_joints, double delta_scale) {
+torch::Tensor adapter_features(const AnchorSet& set, const std::vector<int>& body_joints,
+                               const AdapterFeatureConfig& features) {
   const int64_t T = set.frames;
-  auto out = torch::zeros({T, adapter_feature_width(body_joints)});
+  auto out = torch::zeros({T, adapter_feature_width(body_joints, features)});
   int64_t col = 0;
-  for (int i = 0; i < 3; ++i) {
-    auto layout = anchor_feature_layout(kFamilies[i], body_joints);
-    if (set.family == kFamilies[i] && set.size() > 0) {
-      FeatureMatrix m = anchor_features(set, layout);  // eqs. (5)-(6)
-      if (delta_scale != 1.0) m.middleCols(2 * layout.d_f, layout.d_f) *= static_cast<float>(delta_scale);
-      out.narrow(1, col, layout.width()).copy_(torch::from_blob(m.data(), {T, layout.width()}, torch::kFloat32));
+  auto fill = [&](const FeatureMatrix& m) {
+    out.narrow(1, col, m.cols()).copy_(torch::from_blob(const_cast<float*>(m.data()), {T, m.cols()}, torch::kFloat32));
+  };
+  if (features.world())
+    for (int i = 0; i < 3; ++i) {
+      auto layout = anchor_feature_layout(kFamilies[i], body_joints);
+      if (set.family == kFamilies[i] && set.size() > 0) {
+        FeatureMatrix m = anchor_features(set, layout);  // eqs. (5)-(6)
+        if (features.delta_scale != 1.0)
+          m.middleCols(2 * layout.d_f, layout.d_f) *= static_cast<float>(features.delta_scale);
+        fill(m);
+      }
+      col += layout.width();
     }
-    col += layout.width();
-  }
+  if (features.path())
+    for (int i = 0; i < 3; ++i) {
+      auto layout = anchor_feature_layout(kFamilies[i], body_joints);
+      if (set.family == kFamilies[i] && set.size() > 0) fill(anchor_path_features(set, layout));
+      col += path_feature_width(layout);
+    }
   for (int i = 0; i < 3; ++i)
     if (set.family == kFamilies[i]) out.select(1, col + i).fill_(1.0);
   return out;
@@ -361,7 +382,7 @@ TokenTransformerHooks ControlNetAdapterImpl::hooks(const AdapterInputs& in) {
 
 std::shared_ptr<AnchorAdapterModule> make_anchor_adapter(const AnchorAdapterConfig& c, TokenTransformer backbone,
                                                          int64_t stride) {
-  const int64_t fw = adapter_feature_width(c.body_joints);
+  const int64_t fw = adapter_feature_width(c.body_joints, c.features);
   if (c.adapter == "anchorkv") return AnchorKVAdapter(c, backbone->opt, stride, fw).ptr();
   if (c.adapter == "cross_attention") return CrossAttentionAdapter(c, backbone, stride, fw).ptr();
   if (c.adapter == "controlnet") return ControlNetAdapter(c, backbone, stride, fw).ptr();
@@ -476,7 +497,7 @@ class AnchorAdapterTrainer : public Trainable {
     e << YAML::BeginMap << YAML::Key << "tmd_run" << YAML::Value << tmd_run_ << YAML::Key << "adapter"
       << YAML::Value << cfg_.adapter << YAML::Key << "trainable_parameters" << YAML::Value
       << count_parameters(*adapter_) << YAML::Key << "feature_width" << YAML::Value
-      << adapter_feature_width(cfg_.body_joints) << YAML::Key << "data" << YAML::Value << ctx_.data->source()
+      << adapter_feature_width(cfg_.body_joints, cfg_.features) << YAML::Key << "data" << YAML::Value << ctx_.data->source()
       << YAML::EndMap;
     write_file_atomic(outputs / kMetaFile, std::string(e.c_str()) + "\n");
     write_file_atomic(outputs / "trainable_parameters.txt", fmt::format("{}\n", count_parameters(*adapter_)));
@@ -545,10 +566,10 @@ class AnchorAdapterTrainer : public Trainable {
       torch::NoGradGuard ng;
       text = prior_->net()->drop_condition(text, shard.local(drop).to(dev));
     }
-    auto feats = torch::zeros({B, Tp, adapter_feature_width(cfg_.body_joints)});
+    auto feats = torch::zeros({B, Tp, adapter_feature_width(cfg_.body_joints, cfg_.features)});
     if (!zero_features)
       for (int64_t b = 0; b < B; ++b)
-        feats[b].narrow(0, 0, sets[b].frames).copy_(adapter_features(sets[b], cfg_.body_joints, cfg_.features.delta_scale));
+        feats[b].narrow(0, 0, sets[b].frames).copy_(adapter_features(sets[b], cfg_.body_joints, cfg_.features));
     AdapterInputs in{xin, tt, text, valid, feats.to(dev)};
     auto hooks = adapter_->hooks(in);
     auto logits = prior_->net()->transformer->forward(xin, tt, text, valid, &hooks).logits;  // [B, L, K]

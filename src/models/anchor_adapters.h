@@ -38,14 +38,19 @@ struct AdapterTrainingConfig : Config {
   bool omitted_from_dump() const override { return t_power == 1.0 && !zero_features; }
 };
 
-// Scale of the adapter's input features (issue 15). Eq. (6)'s path difference Delta p is in
-// metres per frame (~0.02 at 20 fps) beside positions of metres, and it is the channel that
-// says how fast the root must move, which is what a translation-invariant token encodes.
-// Default: as written, left out of the dumped config.
+// The adapter's input features (issue 15). `delta_scale`: eq. (6)'s path difference Delta p
+// is in metres per frame (~0.02 at 20 fps) beside positions of metres. `frame`: the
+// world-frame features of eqs. (5)-(6) (world), or the same anchors said in the frame of
+// the interpolation prior's own path (path: control/anchors.h anchor_path_features,
+// invariant to rotating the anchors about y and moving them in xz), or both side by side.
+// Defaults: as written, left out of the dumped config.
 struct AdapterFeatureConfig : Config {
-  double delta_scale = 1.0;  // multiplies every Delta p channel (20 = metres per second at 20 fps)
+  double delta_scale = 1.0;     // multiplies every world Delta p channel (20 = metres per second at 20 fps)
+  std::string frame = "world";  // world (eqs. (5)-(6)) | path (ours) | both
   void visit(FieldVisitor& v) override;
-  bool omitted_from_dump() const override { return delta_scale == 1.0; }
+  bool world() const { return frame != "path"; }
+  bool path() const { return frame != "world"; }
+  bool omitted_from_dump() const override { return delta_scale == 1.0 && frame == "world"; }
 };
 
 // `model:` section of a controlled-training run (model.type = anchor_adapter).
@@ -83,14 +88,16 @@ struct AnchorAdapterConfig : Config, DeclaresDependencies {
 
 // ---------------------------------------------------------------- features
 
-// The adapter's frame-level input: the eq. (5)-(6) features of all three family layouts
-// side by side (root_3d, planar_root, body_point over `body_joints`; the set fills its own
-// family's block, the others stay 0) plus a one-hot of the family, so one model with one
-// input width serves every family. Width = 11 + 8 + (3 * 3G + 2G) + 3 for G body joints.
-int64_t adapter_feature_width(const std::vector<int>& body_joints);
+// The adapter's frame-level input: per family layout (root_3d, planar_root, body_point over
+// `body_joints`) a block of that family's features; the set fills its own family's blocks,
+// the others stay 0; last a one-hot of the family, so one model with one input width
+// serves every family. features.frame picks the blocks: world = eqs. (5)-(6), width
+// 11 + 8 + (3 * 3G + 2G) + 3 for G body joints; path = anchor_path_features, width
+// 14 + 10 + 17G + 3; both = the world blocks, then the path blocks, then the one-hot.
+int64_t adapter_feature_width(const std::vector<int>& body_joints, const AdapterFeatureConfig& features = {});
 // [frames, width] float CPU. UserError if a body-point anchor's joint is not in body_joints.
-// `delta_scale` multiplies the Delta p channels (AdapterFeatureConfig).
-torch::Tensor adapter_features(const AnchorSet& set, const std::vector<int>& body_joints, double delta_scale = 1.0);
+torch::Tensor adapter_features(const AnchorSet& set, const std::vector<int>& body_joints,
+                               const AdapterFeatureConfig& features = {});
 
 // ---------------------------------------------------------------- modules
 

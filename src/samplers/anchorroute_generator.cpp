@@ -72,11 +72,11 @@ class AnchorRouteGenerator : public MotionGenerator {
     TokenHooksFn hooks;
     torch::Tensor feats;
     if (adapter_) {
-      feats = torch::zeros({N, max_tokens * s, adapter_feature_width(acfg_.body_joints)});
+      feats = torch::zeros({N, max_tokens * s, adapter_feature_width(acfg_.body_joints, acfg_.features)});
       // An audit twin trained on zeroed features (model.training.zero_features) sees zeros here too.
       for (int64_t i = 0; i < N && !acfg_.training.zero_features; ++i) {
         try {
-          feats[i].narrow(0, 0, sets[i].frames).copy_(adapter_features(sets[i], acfg_.body_joints, acfg_.features.delta_scale));
+          feats[i].narrow(0, 0, sets[i].frames).copy_(adapter_features(sets[i], acfg_.body_joints, acfg_.features));
         } catch (const UserError& e) {
           fail("generator anchorroute: task '{}': the adapter '{}' cannot read its anchors: {}", tasks[i].id,
                adapter_run_, e.what());

@@ -1,9 +1,12 @@
 // Anchors (AnchorRoute §3.1): the interpolation prior through every anchor, spec <->
 // anchor round trips for the three families, clear errors for what anchors cannot
-// express, the condition-feature layout, the benchmark draws and the support assignment.
+// express, the condition-feature layout, the benchmark draws and the support assignment,
+// and the path-frame features (invariance under moving the anchor set, layout, zeros).
 #include <catch2/catch.hpp>
 
+#include <algorithm>
 #include <cmath>
+#include <random>
 
 #include "control/anchors.h"
 #include "control/linear_observation.h"
@@ -237,4 +240,208 @@ TEST_CASE("anchor draws are sorted, distinct and deterministic per seed", "[anch
   std::mt19937_64 r(0);
   CHECK(draw_anchor_frames(r, 5, 5) == std::vector<int>{0, 1, 2, 3, 4});
   CHECK_THROWS_AS(draw_anchor_frames(r, 5, 6), UserError);
+}
+
+// ------------------------------------------------------------------ path-frame features (issue 15)
+
+namespace {
+
+// A wandering motion [T, 22, 3]: the root turns and changes speed, joint j sits at a
+// fixed body offset that turns with it, so every family's prior moves and curves.
+std::vector<float> wandering_motion(int T, uint64_t seed) {
+  std::mt19937_64 rng(seed);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  const double turn = 0.04 * u(rng), speed = 0.04 + 0.02 * u(rng), wobble = 0.3 * u(rng);
+  std::vector<float> m(static_cast<size_t>(T) * 22 * 3);
+  double x = 0, z = 0, psi = 0;
+  for (int t = 0; t < T; ++t) {
+    psi += turn + 0.02 * std::sin(0.1 * t + wobble);
+    const double v = speed * (1.0 + 0.5 * std::sin(0.05 * t));
+    x += v * std::sin(psi);
+    z += v * std::cos(psi);
+    for (int j = 0; j < 22; ++j) {
+      const double ox = 0.02 * ((j * 7) % 11 - 5), oz = 0.015 * ((j * 5) % 9 - 4);
+      float* p = m.data() + (static_cast<size_t>(t) * 22 + j) * 3;
+      p[0] = static_cast<float>(x + std::cos(psi) * ox + std::sin(psi) * oz);
+      p[1] = static_cast<float>(0.9 + 0.03 * j + 0.05 * std::sin(0.2 * t + j));
+      p[2] = static_cast<float>(z - std::sin(psi) * ox + std::cos(psi) * oz);
+    }
+  }
+  return m;
+}
+
+// The set rotated by `angle` about y and moved by (dx, dz).
+AnchorSet moved(AnchorSet s, double angle, double dx, double dz) {
+  const double c = std::cos(angle), sn = std::sin(angle);
+  for (auto& a : s.anchors) {
+    const double x = a.value[0], z = a.value[2];
+    a.value[0] = a.axes[0] ? c * x + sn * z + dx : 0.0;
+    a.value[2] = a.axes[2] ? -sn * x + c * z + dz : 0.0;
+  }
+  return s;
+}
+
+AnchorSet straight_root_set(int T, const std::vector<int>& frames, double vx, double vz, AnchorFamily family) {
+  AnchorSet s;
+  s.family = family;
+  s.frames = T;
+  for (int t : frames) {
+    Anchor a;
+    a.frame = t;
+    a.axes = family == AnchorFamily::planar_root ? std::array<bool, 3>{true, false, true}
+                                                 : std::array<bool, 3>{true, true, true};
+    a.value = {1.0 + vx * t, a.axes[1] ? 0.95 : 0.0, -2.0 + vz * t};
+    s.anchors.push_back(a);
+  }
+  return s;
+}
+
+}  // namespace
+
+TEST_CASE("path-frame features are invariant to rotating the anchor set about y and moving it in xz",
+          "[anchors][path_features]") {
+  const std::vector<int> body = {0, 10, 11, 15, 20, 21};
+  std::mt19937_64 draw(17);
+  std::uniform_real_distribution<double> angle(-M_PI, M_PI), offset(-5.0, 5.0);
+  for (uint64_t clip = 0; clip < 4; ++clip) {
+    const int T = 120;
+    auto motion = wandering_motion(T, clip);
+    std::mt19937_64 rng(100 + clip);
+    std::vector<AnchorSet> sets;
+    for (int K : {2, 5, 16}) {
+      sets.push_back(draw_anchor_set(AnchorFamily::root_3d, K, motion.data(), T, 22, rng, body));
+      sets.push_back(draw_anchor_set(AnchorFamily::planar_root, K, motion.data(), T, 22, rng, body));
+      sets.push_back(draw_anchor_set(AnchorFamily::body_point, K, motion.data(), T, 22, rng, body));
+    }
+    // Six joints anchored at shared frames: the root-relative channels are live.
+    sets.push_back(draw_sparse_keyjoint_set(motion.data(), T, 22, rng, 0.1, body));
+    for (const auto& s : sets) {
+      auto layout = anchor_feature_layout(s.family, body);
+      FeatureMatrix f = anchor_path_features(s, layout);
+      REQUIRE(f.cols() == path_feature_width(layout));
+      CHECK(f.cwiseAbs().maxCoeff() > 0.1f);  // live channels, not an all-zero block
+      for (int rep = 0; rep < 5; ++rep) {
+        const double a = angle(draw), dx = offset(draw), dz = offset(draw);
+        INFO(family_name(s.family) << " K=" << s.size() << " angle " << a << " offset " << dx << ", " << dz);
+        auto m = moved(s, a, dx, dz);
+        FeatureMatrix g = anchor_path_features(m, layout);
+        CHECK((g - f).cwiseAbs().maxCoeff() < 2e-4f);
+        // The world features do move (so the comparison above could fail).
+        if (std::abs(a) > 0.1)
+          CHECK((anchor_features(m, layout) - anchor_features(s, layout)).cwiseAbs().maxCoeff() > 1e-2f);
+      }
+    }
+  }
+}
+
+TEST_CASE("path-frame features: layout, width and zero where the prior is undefined", "[anchors][path_features]") {
+  // Widths: root_3d 4 + 2 * 4 + 2, planar_root 2 + 2 * 3 + 2, body point + 3 root-relative per group.
+  CHECK(path_feature_width(anchor_feature_layout(AnchorFamily::root_3d)) == 14);
+  CHECK(path_feature_width(anchor_feature_layout(AnchorFamily::planar_root)) == 10);
+  CHECK(path_feature_width(anchor_feature_layout(AnchorFamily::body_point, {0, 10, 20})) == 3 * 17);
+
+  // A straight root path at 0.05 m/frame heading +X (psi = pi / 2), anchors at 5, 15, 25.
+  const int T = 40;
+  auto s = straight_root_set(T, {5, 15, 25}, 0.05, 0.0, AnchorFamily::root_3d);
+  FeatureMatrix f = anchor_path_features(s, anchor_feature_layout(AnchorFamily::root_3d));
+  for (int t = 0; t < T; ++t) {
+    INFO("frame " << t);
+    if (t < 5 || t > 25) {
+      CHECK(f.row(t).isZero());
+      continue;
+    }
+    CHECK(f(t, 0) == Approx(0.05 * kPathFrameRate));  // speed, m/s
+    CHECK(f(t, 1) == Approx(0.0).margin(1e-6));       // no turn
+    CHECK(f(t, 2) == Approx(0.0).margin(1e-6));       // no vertical speed
+    CHECK(f(t, 3) == Approx(0.95));                   // height
+    const int next = t < 15 ? 15 : t < 25 ? 25 : -1, prev = t > 15 ? 15 : t > 5 ? 5 : -1;
+    if (next >= 0) {
+      CHECK(f(t, 4) == Approx(0.0).margin(1e-5));                    // lateral
+      CHECK(f(t, 5) == Approx(0.0).margin(1e-6));                    // up
+      CHECK(f(t, 6) == Approx(0.05 * (next - t)).margin(1e-5));      // ahead along the path
+      CHECK(f(t, 7) == Approx((next - t) / kPathFrameRate));         // seconds to it
+    } else {
+      CHECK(f.row(t).segment(4, 4).isZero());
+    }
+    if (prev >= 0) {
+      CHECK(f(t, 10) == Approx(-0.05 * (t - prev)).margin(1e-5));  // behind
+      CHECK(f(t, 11) == Approx((t - prev) / kPathFrameRate));
+    } else {
+      CHECK(f.row(t).segment(8, 4).isZero());
+    }
+    CHECK(f(t, 12) == 1.f);                                       // m^p
+    CHECK(f(t, 13) == float(t == 5 || t == 15 || t == 25));       // m^a
+  }
+
+  // A path that turns toward +X from +Z (heading increasing): positive turn rate, the
+  // tokenizer's sign of a heading change. A quarter circle of radius 2 over 40 frames.
+  AnchorSet arc;
+  arc.family = AnchorFamily::planar_root;
+  arc.frames = 60;
+  for (int t = 0; t <= 40; t += 8) {
+    const double phi = M_PI / 2 * t / 40.0;
+    Anchor a;
+    a.frame = t + 10;
+    a.axes = {true, false, true};
+    a.value = {2.0 - 2.0 * std::cos(phi), 0.0, 2.0 * std::sin(phi)};
+    arc.anchors.push_back(a);
+  }
+  FeatureMatrix g = anchor_path_features(arc, anchor_feature_layout(AnchorFamily::planar_root));
+  const double omega = M_PI / 2 / 40 * kPathFrameRate;  // rad/s
+  for (int t = 15; t <= 45; ++t) CHECK(g(t, 1) == Approx(omega).epsilon(0.05));
+  CHECK(g(10, 1) == 0.f);  // first prior frame: no turn yet
+  CHECK(g.row(9).isZero());
+  CHECK(g.row(51).isZero());
+
+  // A standing path (sub-threshold jitter) reads as no turn however its direction flips.
+  AnchorSet still;
+  still.family = AnchorFamily::planar_root;
+  still.frames = 30;
+  for (int t = 0; t < 30; t += 3) {
+    Anchor a;
+    a.frame = t;
+    a.axes = {true, false, true};
+    a.value = {0.001 * ((t / 3) % 2), 0.0, 0.001 * ((t / 3) % 3)};
+    still.anchors.push_back(a);
+  }
+  FeatureMatrix h = anchor_path_features(still, anchor_feature_layout(AnchorFamily::planar_root));
+  CHECK(h.col(1).cwiseAbs().maxCoeff() < 1e-6f);
+  CHECK(h.col(0).cwiseAbs().maxCoeff() < kPathMinSpeed * kPathFrameRate);
+
+  // Body points: a hand 0.3 m to the right of (+x') and 0.5 m above the root while the
+  // root walks along +X; in the root path's frame that is (0.3, 0.5, 0) at every frame.
+  auto bl = anchor_feature_layout(AnchorFamily::body_point, {0, 20});
+  AnchorSet bp;
+  bp.family = AnchorFamily::body_point;
+  bp.frames = 30;
+  for (int t : {4, 12, 20}) {
+    for (int j : {0, 20}) {
+      Anchor a;
+      a.frame = t;
+      a.joint = j;
+      // Heading +X: x' = cos(pi/2) dx - sin(pi/2) dz = -dz, so +x' is world -z.
+      a.value = {0.04 * t, j == 0 ? 0.9 : 1.4, j == 0 ? 0.0 : -0.3};
+      bp.anchors.push_back(a);
+    }
+  }
+  FeatureMatrix b = anchor_path_features(bp, bl);
+  REQUIRE(b.cols() == 34);
+  for (int t = 4; t <= 20; ++t) {
+    CHECK(b.row(t).segment(14, 3).isZero());                 // the root group has no root-relative channels
+    CHECK(b(t, 17 + 14) == Approx(0.3).margin(1e-5));        // x'
+    CHECK(b(t, 17 + 15) == Approx(0.5).margin(1e-5));        // y
+    CHECK(b(t, 17 + 16) == Approx(0.0).margin(1e-5));        // z'
+  }
+  CHECK(b.row(3).isZero());
+  CHECK(b.row(21).isZero());
+  // Without the root anchored the hand's root-relative channels stay 0.
+  bp.anchors.erase(std::remove_if(bp.anchors.begin(), bp.anchors.end(), [](const Anchor& a) { return a.joint == 0; }),
+                   bp.anchors.end());
+  FeatureMatrix b2 = anchor_path_features(bp, bl);
+  CHECK(b2.block(0, 17 + 14, 30, 3).isZero());
+  CHECK(b2.block(0, 0, 30, 17).isZero());
+  CHECK(b2(12, 17 + 12) == 1.f);
+  // Anchors on a joint the layout does not list are an error naming it.
+  bp.anchors[0].joint = 15;
+  expect_user_error([&] { anchor_path_features(bp, bl); }, {"joint 15"});
 }

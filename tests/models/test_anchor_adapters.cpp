@@ -86,11 +86,11 @@ Inputs make_inputs(const AnchorAdapterConfig& c, const TokenTransformerOptions& 
   r.in.text = random_text(B, 5, o.text_dim);
   r.in.valid = torch::ones({B, L}, torch::kBool);
   r.in.valid[1].narrow(0, L - 2, 2).fill_(false);
-  auto feats = torch::zeros({B, L * stride, adapter_feature_width(c.body_joints)});
+  auto feats = torch::zeros({B, L * stride, adapter_feature_width(c.body_joints, c.features)});
   for (int64_t b = 0; b < B; ++b) {
     auto fam = b % 3 == 0 ? AnchorFamily::root_3d : b % 3 == 1 ? AnchorFamily::planar_root : AnchorFamily::body_point;
     auto set = draw_anchor_set(fam, 4, motion.data(), static_cast<int>(L * stride), 22, rng, c.body_joints);
-    feats[b].copy_(adapter_features(set, c.body_joints));
+    feats[b].copy_(adapter_features(set, c.body_joints, c.features));
   }
   r.in.features = feats;
   return r;
@@ -119,7 +119,9 @@ TEST_CASE("adapter features: one block per family plus a family one-hot", "[anch
   CHECK(torch::equal(fb.narrow(1, 85, 3)[5], torch::tensor({0.0f, 0.0f, 1.0f})));
   // delta_scale multiplies exactly the Delta p channels [2 d_f, 3 d_f) of the set's block.
   for (double scale : {0.5, 20.0}) {
-    auto g = adapter_features(root, bj, scale);
+    AdapterFeatureConfig fc;
+    fc.delta_scale = scale;
+    auto g = adapter_features(root, bj, fc);
     CHECK(torch::equal(g.narrow(1, 0, 6), f.narrow(1, 0, 6)));
     CHECK(torch::allclose(g.narrow(1, 6, 3), f.narrow(1, 6, 3) * scale));
     CHECK(torch::equal(g.narrow(1, 9, 88 - 9), f.narrow(1, 9, 88 - 9)));
@@ -128,6 +130,37 @@ TEST_CASE("adapter features: one block per family plus a family one-hot", "[anch
   // A body-point anchor on a joint outside the layout is a clear error.
   auto other = draw_anchor_set(AnchorFamily::body_point, 2, motion.data(), 40, 22, rng, {7});
   CHECK_THROWS_AS(adapter_features(other, bj), UserError);
+}
+
+TEST_CASE("adapter features in the path frame: path blocks alone or after the world blocks, one-hot last",
+          "[anchorkv][path_features]") {
+  std::vector<int> bj = {0, 10, 11, 15, 20, 21};
+  AdapterFeatureConfig world, path, both;
+  path.frame = "path";
+  both.frame = "both";
+  CHECK(adapter_feature_width(bj, world) == 88);
+  CHECK(adapter_feature_width(bj, path) == 14 + 10 + 17 * 6 + 3);
+  CHECK(adapter_feature_width(bj, both) == 85 + 126 + 3);
+  auto motion = toy_motion(40);
+  std::mt19937_64 rng(4);
+  for (auto fam : {AnchorFamily::root_3d, AnchorFamily::planar_root, AnchorFamily::body_point}) {
+    auto set = draw_anchor_set(fam, 4, motion.data(), 40, 22, rng, bj);
+    auto layout = anchor_feature_layout(fam, bj);
+    const int64_t off = fam == AnchorFamily::root_3d ? 0 : fam == AnchorFamily::planar_root ? 14 : 24;
+    FeatureMatrix m = anchor_path_features(set, layout);
+    auto own = torch::from_blob(m.data(), {40, m.cols()}, torch::kFloat32);
+    auto p = adapter_features(set, bj, path), b = adapter_features(set, bj, both), w = adapter_features(set, bj, world);
+    CHECK(torch::equal(p.narrow(1, off, m.cols()), own));
+    CHECK(p.narrow(1, 0, 126).abs().sum().item<double>() == Approx(own.abs().sum().item<double>()));
+    CHECK(torch::equal(b.narrow(1, 0, 85), w.narrow(1, 0, 85)));
+    CHECK(torch::equal(b.narrow(1, 85, 129), p));
+    CHECK(torch::equal(b.narrow(1, 211, 3), w.narrow(1, 85, 3)));
+  }
+  // The default is left out of the dumped config (existing runs keep their hashes).
+  AnchorAdapterConfig c;
+  CHECK(dump_config(c).find("features") == std::string::npos);
+  c.features.frame = "path";
+  CHECK(dump_config(c).find("frame: \"path\"") != std::string::npos);
 }
 
 TEST_CASE("AnchorKV: one LayerKV per block, token-aligned [B, L, width], values zero at init", "[anchorkv]") {
@@ -263,6 +296,12 @@ AnchorAdapterConfig aligned_config(int window) {
   return c;
 }
 
+AnchorAdapterConfig path_config() {
+  auto c = aligned_config(1);
+  c.features.frame = "both";
+  return c;
+}
+
 double max_abs_diff(const torch::Tensor& a, const torch::Tensor& b) { return (a - b).abs().max().item<double>(); }
 
 // Randomises every trainable weight so an adapter's effect is visible.
@@ -283,6 +322,7 @@ TEST_CASE("identity at initialisation: untrained adapters leave the frozen prior
       {"anchorkv own, all slots", aligned_config(-1)},
       {"anchorkv own, window 0", aligned_config(0)},
       {"anchorkv own, window 1", aligned_config(1)},
+      {"anchorkv own, window 1, path-frame features", path_config()},
       {"cross_attention", adapter_config("cross_attention")},
       {"controlnet", adapter_config("controlnet")}};
   for (auto& [name, c] : cases) {
