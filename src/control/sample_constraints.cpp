@@ -9,6 +9,7 @@
 
 #include "control/linear_observation.h"
 #include "core/error.h"
+#include "core/h5_handle.h"
 #include "core/h5_seal.h"
 #include "core/isolated.h"
 
@@ -25,25 +26,6 @@ struct Ordered {
     if (std::find(values.begin(), values.end(), v) == values.end()) values.push_back(v);
   }
   int size() const { return static_cast<int>(values.size()); }
-};
-
-struct Handle {
-  hid_t id;
-  herr_t (*close)(hid_t);
-  ~Handle() {
-    if (id >= 0) close(id);
-  }
-};
-
-// Silences HDF5's error printing while alive (errors become messages of ours).
-class QuietHdf5 {
- public:
-  QuietHdf5() { H5Eget_auto2(H5E_DEFAULT, &func_, &data_), H5Eset_auto2(H5E_DEFAULT, nullptr, nullptr); }
-  ~QuietHdf5() { H5Eset_auto2(H5E_DEFAULT, func_, data_); }
-
- private:
-  H5E_auto2_t func_ = nullptr;
-  void* data_ = nullptr;
 };
 
 }  // namespace
@@ -125,30 +107,30 @@ void write_sample_constraints(int64_t file, const std::vector<ConstraintSpec>& s
     throw std::logic_error("write_sample_constraints: one frame count per spec is needed");
   QuietHdf5 quiet;
   // No modification times: the same samples give the same bytes.
-  Handle gcpl{H5Pcreate(H5P_GROUP_CREATE), H5Pclose};
-  H5Pset_obj_track_times(gcpl.id, false);
-  Handle dcpl{H5Pcreate(H5P_DATASET_CREATE), H5Pclose};
-  H5Pset_obj_track_times(dcpl.id, false);
-  Handle g{H5Gcreate2(static_cast<hid_t>(file), "control", H5P_DEFAULT, gcpl.id, H5P_DEFAULT), H5Gclose};
-  if (g.id < 0) fail("{}: cannot create group /control", path);
+  H5Handle gcpl{H5Pcreate(H5P_GROUP_CREATE), H5Pclose};
+  H5Pset_obj_track_times(gcpl.get(), false);
+  H5Handle dcpl{H5Pcreate(H5P_DATASET_CREATE), H5Pclose};
+  H5Pset_obj_track_times(dcpl.get(), false);
+  H5Handle g{H5Gcreate2(static_cast<hid_t>(file), "control", H5P_DEFAULT, gcpl.get(), H5P_DEFAULT), H5Gclose};
+  if (g.get() < 0) fail("{}: cannot create group /control", path);
   {
-    Handle space{H5Screate(H5S_SCALAR), H5Sclose};
-    Handle str{H5Tcopy(H5T_C_S1), H5Tclose};
-    H5Tset_size(str.id, H5T_VARIABLE);
-    H5Tset_cset(str.id, H5T_CSET_UTF8);
-    Handle a{H5Acreate2(g.id, "format", str.id, space.id, H5P_DEFAULT, H5P_DEFAULT), H5Aclose};
+    H5Handle space{H5Screate(H5S_SCALAR), H5Sclose};
+    H5Handle str{H5Tcopy(H5T_C_S1), H5Tclose};
+    H5Tset_size(str.get(), H5T_VARIABLE);
+    H5Tset_cset(str.get(), H5T_CSET_UTF8);
+    H5Handle a{H5Acreate2(g.get(), "format", str.get(), space.get(), H5P_DEFAULT, H5P_DEFAULT), H5Aclose};
     const char* f = kFormat;
-    H5Awrite(a.id, str.id, &f);
-    Handle v{H5Acreate2(g.id, "format_version", H5T_STD_I64LE, space.id, H5P_DEFAULT, H5P_DEFAULT), H5Aclose};
-    H5Awrite(v.id, H5T_NATIVE_INT64, &kFormatVersion);
+    H5Awrite(a.get(), str.get(), &f);
+    H5Handle v{H5Acreate2(g.get(), "format_version", H5T_STD_I64LE, space.get(), H5P_DEFAULT, H5P_DEFAULT), H5Aclose};
+    H5Awrite(v.get(), H5T_NATIVE_INT64, &kFormatVersion);
     hsize_t n = frames.size();
-    Handle s1{H5Screate_simple(1, &n, nullptr), H5Sclose};
-    Handle ds{H5Dcreate2(g.id, "frames", H5T_STD_I32LE, s1.id, H5P_DEFAULT, dcpl.id, H5P_DEFAULT), H5Dclose};
-    if (ds.id < 0 || (n > 0 && H5Dwrite(ds.id, H5T_NATIVE_INT, H5S_ALL, H5S_ALL, H5P_DEFAULT, frames.data()) < 0))
+    H5Handle s1{H5Screate_simple(1, &n, nullptr), H5Sclose};
+    H5Handle ds{H5Dcreate2(g.get(), "frames", H5T_STD_I32LE, s1.get(), H5P_DEFAULT, dcpl.get(), H5P_DEFAULT), H5Dclose};
+    if (ds.get() < 0 || (n > 0 && H5Dwrite(ds.get(), H5T_NATIVE_INT, H5S_ALL, H5S_ALL, H5P_DEFAULT, frames.data()) < 0))
       fail("{}: cannot write /control/frames", path);
   }
   for (size_t i = 0; i < specs.size(); ++i)
-    write_constraint_spec_group(g.id, fmt::format("sample_{:06d}", i), specs[i], path);
+    write_constraint_spec_group(g.get(), fmt::format("sample_{:06d}", i), specs[i], path);
 }
 
 namespace {
@@ -156,32 +138,32 @@ namespace {
 SampleConstraints read_sample_constraints_unchecked(const std::string& path) {
   QuietHdf5 quiet;
   if (!std::filesystem::exists(path)) fail("{}: no such file", path);
-  Handle file{H5Fopen(path.c_str(), H5F_ACC_RDONLY, H5P_DEFAULT), H5Fclose};
-  if (file.id < 0) fail("{}: not a readable HDF5 file", path);
+  H5Handle file{H5Fopen(path.c_str(), H5F_ACC_RDONLY, H5P_DEFAULT), H5Fclose};
+  if (file.get() < 0) fail("{}: not a readable HDF5 file", path);
   SampleConstraints out;
-  if (H5Lexists(file.id, "control", H5P_DEFAULT) <= 0) return out;
-  Handle g{H5Gopen2(file.id, "control", H5P_DEFAULT), H5Gclose};
-  if (g.id < 0) fail("{}: /control is not a group", path);
-  if (H5Aexists(g.id, "format_version") > 0) {
-    Handle a{H5Aopen(g.id, "format_version", H5P_DEFAULT), H5Aclose};
+  if (H5Lexists(file.get(), "control", H5P_DEFAULT) <= 0) return out;
+  H5Handle g{H5Gopen2(file.get(), "control", H5P_DEFAULT), H5Gclose};
+  if (g.get() < 0) fail("{}: /control is not a group", path);
+  if (H5Aexists(g.get(), "format_version") > 0) {
+    H5Handle a{H5Aopen(g.get(), "format_version", H5P_DEFAULT), H5Aclose};
     int64_t version = 0;
-    if (H5Aread(a.id, H5T_NATIVE_INT64, &version) < 0 || version > kFormatVersion)
+    if (H5Aread(a.get(), H5T_NATIVE_INT64, &version) < 0 || version > kFormatVersion)
       fail("{}: /control has format_version {}, this build reads up to {}", path, version, kFormatVersion);
   }
   for (size_t i = 0;; ++i) {
     std::string name = fmt::format("sample_{:06d}", i);
-    if (H5Lexists(g.id, name.c_str(), H5P_DEFAULT) <= 0) break;
-    out.specs.push_back(read_constraint_spec_group(g.id, name, path));
+    if (H5Lexists(g.get(), name.c_str(), H5P_DEFAULT) <= 0) break;
+    out.specs.push_back(read_constraint_spec_group(g.get(), name, path));
     out.specs.back().source = fmt::format("{}:/control/{}", path, name);
   }
-  if (H5Lexists(g.id, "frames", H5P_DEFAULT) > 0) {
-    Handle ds{H5Dopen2(g.id, "frames", H5P_DEFAULT), H5Dclose};
-    Handle space{ds.id >= 0 ? H5Dget_space(ds.id) : -1, H5Sclose};
+  if (H5Lexists(g.get(), "frames", H5P_DEFAULT) > 0) {
+    H5Handle ds{H5Dopen2(g.get(), "frames", H5P_DEFAULT), H5Dclose};
+    H5Handle space{ds.get() >= 0 ? H5Dget_space(ds.get()) : -1, H5Sclose};
     hsize_t n = 0;
-    if (space.id < 0 || H5Sget_simple_extent_ndims(space.id) != 1 || H5Sget_simple_extent_dims(space.id, &n, nullptr) < 0)
+    if (space.get() < 0 || H5Sget_simple_extent_ndims(space.get()) != 1 || H5Sget_simple_extent_dims(space.get(), &n, nullptr) < 0)
       fail("{}: /control/frames must be a 1-D integer dataset", path);
     out.frames.resize(n);
-    if (n > 0 && H5Dread(ds.id, H5T_NATIVE_INT, H5S_ALL, H5S_ALL, H5P_DEFAULT, out.frames.data()) < 0)
+    if (n > 0 && H5Dread(ds.get(), H5T_NATIVE_INT, H5S_ALL, H5S_ALL, H5P_DEFAULT, out.frames.data()) < 0)
       fail("{}: /control/frames cannot be read as integers", path);
     if (out.frames.size() != out.specs.size())
       fail("{}: /control/frames has {} entries but /control holds {} sample groups (sample_000000, ...); give one "
