@@ -28,6 +28,9 @@ struct ProfileConfig : Config {
   std::string device = "cpu";
   std::vector<std::string> substitutions;  // path=value applied to generator/protocol files where path exists
   std::vector<std::string> trained_configs;  // from=to: training configs swapped for this profile
+  // table_id=N: tasks per row of one table in this profile (cheap tables with small
+  // effects get more tasks; the smoke and CI profiles keep theirs).
+  std::vector<std::string> table_num_samples;
   std::string runs_root = "runs/experiments";
   std::string results_root = "results";
   bool health = true;  // prior health of every trained prior the rows use
@@ -47,12 +50,16 @@ struct ProfileConfig : Config {
     v("trained_configs", trained_configs,
       "from=to training-config swaps for every trained component, also inside other training configs "
       "(e.g. configs/prior/flow_tiny.yaml=configs/prior/flow_standard.yaml)");
+    v("table_num_samples", table_num_samples,
+      "table_id=N entries: tasks per row for that table in this profile (over the table's own num_samples and "
+      "profile.num_samples), e.g. anchorroute/table4=256");
     v("runs_root", runs_root, "where row runs and trained components live");
     v("results_root", results_root, "results/<profile>/ goes here");
     v("health", health,
       "check every trained prior and tokenizer the rows use (motionctl health): verdicts at the top of each table "
       "and in results/<profile>/health.md");
   }
+  std::string validate() const override;
 };
 
 struct ProfileFile : Config {
@@ -147,6 +154,10 @@ struct TableSpec {
   std::vector<RowConfig> rows;
 };
 TableSpec load_table_spec(const std::string& file);  // UserError naming file, row and key
+
+// Tasks per row of `table` under `profile`: profile.table_num_samples, else the table's
+// num_samples, else profile.num_samples.
+int table_tasks(const ProfileConfig& profile, const TableConfig& table);
 
 // Everything a finished row produced.
 struct RowResult {

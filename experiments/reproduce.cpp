@@ -90,11 +90,13 @@ static std::vector<std::pair<std::string, std::string>> replay_settings(ProfileF
   return out;
 }
 
-// The ground truth and evaluator by content (a file regenerated in place counts as
-// another): known once the fixture is built and the evaluator trained.
-static std::vector<std::pair<std::string, std::string>> content_settings(const ProfileConfig& p,
-                                                                          const std::string& evaluator_run) {
-  return {{"data_sha1", file_sha1(resolve_data_path(p.data))},
+// The ground truth and evaluator by content: the ground truth by what it holds (a
+// fixture rebuilt with the same clips is the same data, one with other clips is not),
+// the evaluator by its checkpoint's bytes; known once the fixture is built and the
+// evaluator trained.
+static std::vector<std::pair<std::string, std::string>> content_settings(const RowEvaluator& ev) {
+  const std::string& evaluator_run = ev.evaluator_run();
+  return {{"data_content_sha1", ev.data_content_sha1()},
           {"evaluator_sha1", file_sha1(fs::path(evaluator_run) / "checkpoints" / "final.pt")}};
 }
 
@@ -126,11 +128,11 @@ static void check_kept_settings(const StoredResults& stored, const std::vector<c
       if (v == was) differ.push_back(t->spec.table.id);
     }
     if (differ.empty()) continue;
-    const bool by_content = key == "data_sha1" || key == "evaluator_sha1";
+    const bool by_content = key == "data_content_sha1" || key == "evaluator_sha1";
     const std::string restore =
         was == "(not recorded)" ? "replay them again with this version"
         : by_content ? fmt::format("restore the {} they were replayed with",
-                                   key == "data_sha1" ? "ground-truth file" : "evaluator checkpoint")
+                                   key == "data_content_sha1" ? "ground-truth data" : "evaluator checkpoint")
                      : fmt::format("re-run with the earlier value (--set {}={})", key, was);
     fail("{}: a partial replay keeps the tables it does not re-run, but {} {} replayed with {}={} and this run has "
          "{}={}: a summary mixing them would compare different protocols. Either {}, {}",
@@ -230,6 +232,15 @@ ReproduceResult reproduce(const ReproduceOptions& opt) {
     for (auto& id : seen) ids += " " + id;
     fail("--tables {} matched no experiment spec; known tables:{}", fmt::format("{}", fmt::join(opt.tables, ",")), ids);
   }
+  for (const auto& e : pf.profile.table_num_samples) {
+    const std::string id = e.substr(0, e.rfind('='));  // well-formed: ProfileConfig::validate
+    if (!seen.count(id)) {
+      std::string ids;
+      for (auto& k : seen) ids += " " + k;
+      fail("{}: profile.table_num_samples names table '{}', which no experiment spec defines; known tables:{}",
+           profile_file, id, ids);
+    }
+  }
   std::set<std::string> selected_ids;
   for (const auto& s : specs) selected_ids.insert(s.table.id);
   check_replay_memory(pf, specs, profile_file);
@@ -271,7 +282,7 @@ ReproduceResult reproduce(const ReproduceOptions& opt) {
   RowEvaluator ev(pf.profile);
   const std::vector<std::string> evaluator_runs = take_trained_runs();  // its training curve goes in results.h5
   {
-    auto by_content = content_settings(pf.profile, ev.evaluator_run());
+    auto by_content = content_settings(ev);
     if (stored) check_kept_settings(*stored, kept, by_content, pf.profile.name);
     run.settings.insert(run.settings.end(), by_content.begin(), by_content.end());
   }
@@ -283,7 +294,7 @@ ReproduceResult reproduce(const ReproduceOptions& opt) {
     TableResult tr;
     tr.spec = spec;
     tr.evaluator = ev.evaluator_run();
-    tr.num_samples = spec.table.num_samples > 0 ? spec.table.num_samples : pf.profile.num_samples;
+    tr.num_samples = table_tasks(pf.profile, spec.table);
     tr.repeats = pf.profile.repeats;
     tr.run = run;
     if (!spec.table.paper_numbers.empty()) {

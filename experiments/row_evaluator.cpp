@@ -1,8 +1,12 @@
 // The shared ground truth and evaluator of the table replay.
 #include "experiments/row_evaluator.h"
 
+#include <c10/util/hash.h>
+
+#include <array>
 #include <filesystem>
 #include <random>
+#include <type_traits>
 
 #include "core/error.h"
 #include "data/fixture/fixture_build.h"
@@ -11,6 +15,64 @@
 
 namespace mc {
 namespace fs = std::filesystem;
+
+namespace {
+
+// Appends values to a byte string with their sizes, so that two different sequences
+// never serialise to the same bytes.
+struct ContentBytes {
+  std::string out;
+  template <class T>
+  void pod(const T& v) {
+    out.append(reinterpret_cast<const char*>(&v), sizeof v);
+  }
+  void str(const std::string& v) {
+    pod(static_cast<uint64_t>(v.size()));
+    out += v;
+  }
+  template <class T>
+  void vec(const std::vector<T>& v) {
+    pod(static_cast<uint64_t>(v.size()));
+    if constexpr (std::is_same_v<T, std::string>)
+      for (const auto& x : v) str(x);
+    else
+      out.append(reinterpret_cast<const char*>(v.data()), v.size() * sizeof(T));
+  }
+};
+
+}  // namespace
+
+const std::string& RowEvaluator::data_content_sha1() const {
+  if (!content_sha1_.empty()) return content_sha1_;
+  const MotionSet& m = data_;
+  ContentBytes b;
+  b.str("motionctl ground-truth content v1");
+  b.str(m.skeleton.name);
+  b.vec(m.skeleton.joint_names);
+  b.vec(m.skeleton.parents);
+  b.vec(m.skeleton.bone_lengths);
+  for (const auto& d : m.skeleton.rest_directions) b.pod(std::array<double, 3>{d.x(), d.y(), d.z()});
+  b.pod(m.fps);
+  b.pod(m.t_max);
+  b.vec(m.lengths);
+  b.vec(m.joints);
+  b.vec(m.ids);
+  b.vec(m.splits);
+  b.pod(static_cast<uint64_t>(m.captions.size()));
+  for (const auto& c : m.captions) b.vec(c);
+  b.vec(m.labels);
+  b.pod(m.stats.has_value());
+  if (m.stats) {
+    b.vec(m.stats->joint_mean);
+    b.vec(m.stats->joint_std);
+    b.vec(m.stats->feature_mean);
+    b.vec(m.stats->feature_std);
+    b.str(m.stats->feature_layout);
+  }
+  b.vec(m.vocab);
+  content_sha1_ = c10::sha1(b.out).str();
+  return content_sha1_;
+}
 
 RowEvaluator::RowEvaluator(const ProfileConfig& profile) {
   data_path_ = resolve_data_path(profile.data);

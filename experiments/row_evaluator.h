@@ -39,6 +39,11 @@ class RowEvaluator {
 
   const MotionSet& data() const { return data_; }
   const MotionSet& reference() const { return reference_; }
+  // SHA-1 of what the ground truth holds (skeleton, fps, clips, ids, splits, captions,
+  // labels, statistics, vocabulary), not of the file's bytes: a fixture rebuilt on a
+  // fresh clone has the same content but not the same bytes (HDF5 layout, its provenance
+  // naming the output path), and should not count as other data. Computed once.
+  const std::string& data_content_sha1() const;
   const std::string& evaluator_run() const { return evaluator_run_; }
 
  private:
@@ -49,6 +54,7 @@ class RowEvaluator {
   Embeddings reference_embeddings_;
   RealismReference realism_;
   mutable std::map<int, std::pair<double, double>> floors_;
+  mutable std::string content_sha1_;
 };
 
 }  // namespace mc

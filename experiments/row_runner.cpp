@@ -8,6 +8,7 @@
 #include <chrono>
 #include <filesystem>
 #include <iostream>
+#include <optional>
 #include <set>
 #include <sstream>
 
@@ -43,6 +44,37 @@ ProfileFile load_profile(const std::string& name_or_file) {
     fail("profile '{}' not found ({} does not exist); known profiles are the files in configs/profile/", name_or_file,
          file);
   return load_job<ProfileFile>(file, {});
+}
+
+// One table_num_samples entry: "table_id=N" with N >= 1 (std::nullopt when malformed).
+static std::optional<std::pair<std::string, int>> parse_table_tasks(const std::string& entry) {
+  const auto eq = entry.rfind('=');
+  if (eq == std::string::npos || eq == 0 || eq + 1 == entry.size()) return std::nullopt;
+  const std::string n = entry.substr(eq + 1);
+  if (n.size() > 9 || !std::all_of(n.begin(), n.end(), [](char c) { return c >= '0' && c <= '9'; }))
+    return std::nullopt;
+  const int v = std::stoi(n);
+  if (v < 1) return std::nullopt;
+  return std::make_pair(entry.substr(0, eq), v);
+}
+
+std::string ProfileConfig::validate() const {
+  std::set<std::string> seen;
+  for (const auto& e : table_num_samples) {
+    auto p = parse_table_tasks(e);
+    if (!p)
+      return fmt::format("profile.table_num_samples: '{}' is not table_id=N with N >= 1 (e.g. anchorroute/table4=256)",
+                         e);
+    if (!seen.insert(p->first).second)
+      return fmt::format("profile.table_num_samples: table '{}' is listed twice; keep one entry", p->first);
+  }
+  return "";
+}
+
+int table_tasks(const ProfileConfig& profile, const TableConfig& table) {
+  for (const auto& e : profile.table_num_samples)
+    if (auto p = parse_table_tasks(e); p && p->first == table.id) return p->second;
+  return table.num_samples > 0 ? table.num_samples : profile.num_samples;
 }
 
 std::string TableConfig::validate() const {
@@ -136,7 +168,7 @@ ResolvedRow resolve_row(const ProfileConfig& profile, const TableSpec& table, co
 // The key that decides whether a finished row run can be reused.
 struct RowRunKey : Config {
   std::string generator, protocol, data, evaluator, split;
-  std::string data_sha1, evaluator_sha1;  // the inputs by content: a file regenerated in place is a new key
+  std::string data_content_sha1, evaluator_sha1;  // the inputs by content: other clips or weights are a new key
   std::vector<std::string> trained_configs;
   int num_samples = 0, repeats = 0, mm_texts = 0, mm_generations = 0;
   int64_t seed = 0;
@@ -152,7 +184,7 @@ struct RowRunKey : Config {
     v("data", data, "ground-truth file");
     v("evaluator", evaluator, "evaluator config");
     v("split", split, "split");
-    v("data_sha1", data_sha1, "SHA-1 of the ground-truth file's bytes");
+    v("data_content_sha1", data_content_sha1, "SHA-1 of what the ground-truth file holds (RowEvaluator::data_content_sha1)");
     v("evaluator_sha1", evaluator_sha1, "SHA-1 of the evaluator checkpoint's bytes");
     v("trained_configs", trained_configs, "training-config swaps");
     v("num_samples", num_samples, "tasks");
@@ -441,10 +473,10 @@ RowResult run_row(const ProfileFile& pf, const TableSpec& table, const RowConfig
   key.data = profile.data;
   key.evaluator = profile.evaluator;
   key.split = profile.split;
-  key.data_sha1 = file_sha1(resolve_data_path(profile.data));
+  key.data_content_sha1 = ev.data_content_sha1();
   key.evaluator_sha1 = file_sha1(fs::path(ev.evaluator_run()) / "checkpoints" / "final.pt");
   key.trained_configs = profile.trained_configs;
-  key.num_samples = table.table.num_samples > 0 ? table.table.num_samples : profile.num_samples;
+  key.num_samples = table_tasks(profile, table.table);
   key.repeats = row.repeats > 0 ? row.repeats : profile.repeats;
   key.mm_texts = table.table.multimodality_texts;
   key.mm_generations = table.table.multimodality_texts > 0 ? table.table.multimodality_generations : 0;

@@ -154,7 +154,7 @@ TEST_CASE("reproduce --tables merges into results/<profile>/: other tables and t
   // Each table says which run it came from.
   CHECK(attr(h5, "/tables/t|a", "date") != attr(h5, "/tables/t|b", "date"));
   CHECK(attr(h5, "/tables/t|a", "settings").find("profile.num_samples=4") != std::string::npos);
-  CHECK(attr(h5, "/tables/t|a", "settings").find("data_sha1=") != std::string::npos);
+  CHECK(attr(h5, "/tables/t|a", "settings").find("data_content_sha1=") != std::string::npos);
   CHECK(attr(h5, "/claims/b_exact", "verdict") == "holds");
 
   // Re-running A (now with a second row and a new claim on B) replaces A and leaves B's
@@ -197,6 +197,29 @@ TEST_CASE("reproduce --tables merges into results/<profile>/: other tables and t
   }
   CHECK(slurp(h5) == h5_bytes);
   CHECK(slurp(summary) == summary_bytes);
+
+  // The ground truth counts by what it holds, not by its bytes: the same fixture built
+  // elsewhere (its provenance names another output path, so other bytes) and moved into
+  // place keeps the tables comparable; a fixture with other clips at the same path does not.
+  {
+    const fs::path saved = dir.path / "fx_saved.h5", elsewhere = dir.path / "fx_elsewhere.h5";
+    fs::copy_file(fx, saved);
+    REQUIRE(run_motionctl(fmt::format("fixture configs/data/smoke.yaml output={} fixture.num_clips=60",
+                                      elsewhere.string()))
+                .exit_code == 0);
+    REQUIRE(slurp(elsewhere) != slurp(saved));
+    fs::copy_file(elsewhere, fx, fs::copy_options::overwrite_existing);
+    CHECK(replay("--tables t/a").exit_code == 0);
+    REQUIRE(run_motionctl(fmt::format("fixture configs/data/smoke.yaml output={} fixture.num_clips=60 fixture.seed=99 "
+                                      "--force",
+                                      fx))
+                .exit_code == 0);
+    auto r = replay("--tables t/a");
+    CHECK(r.exit_code == 2);
+    CHECK(r.output.find("data_content_sha1") != std::string::npos);
+    CHECK(r.output.find("ground-truth data") != std::string::npos);
+    fs::copy_file(saved, fx, fs::copy_options::overwrite_existing);
+  }
 
   // A re-run table whose rows fail keeps its earlier entry (non-zero exit, the failure listed).
   {

@@ -151,3 +151,37 @@ TEST_CASE("profiles: every component a profile trains reads the profile's own da
       CHECK(types.count(type) == 1);
   }
 }
+
+// profile.table_num_samples: a profile gives one table more tasks per row without the
+// table's spec (which the smoke and CI profiles share) changing; malformed entries
+// fail at load, naming the entry.
+TEST_CASE("profiles: table_num_samples picks one table's tasks per row", "[profile]") {
+  ProfileConfig p;
+  p.num_samples = 32;
+  TableConfig a, b;
+  a.id = "anchorroute/table4";
+  b.id = "projflow/table3";
+  CHECK(table_tasks(p, a) == 32);
+  b.num_samples = 48;  // the table's own count beats the profile's
+  CHECK(table_tasks(p, b) == 48);
+  p.table_num_samples = {"anchorroute/table4=256", "projflow/table3=64"};
+  CHECK(p.validate().empty());
+  CHECK(table_tasks(p, a) == 256);
+  CHECK(table_tasks(p, b) == 64);  // the profile's entry beats the table's
+  TableConfig c;
+  c.id = "anchorroute/table5";
+  CHECK(table_tasks(p, c) == 32);
+  for (const char* bad : {"anchorroute/table4", "anchorroute/table4=", "=12", "anchorroute/table4=0",
+                          "anchorroute/table4=-3", "anchorroute/table4=1e3"}) {
+    INFO(bad);
+    p.table_num_samples = {bad};
+    CHECK_THAT(p.validate(), Catch::Contains(bad) && Catch::Contains("table_id=N"));
+  }
+  p.table_num_samples = {"anchorroute/table4=8", "anchorroute/table4=16"};
+  CHECK_THAT(p.validate(), Catch::Contains("listed twice"));
+  // The standard profile's entries name tables that exist and load.
+  ProfileFile pf = load_job<ProfileFile>(resolve_data_path("configs/profile/standard.yaml"), {});
+  CHECK(table_tasks(pf.profile, a) == 256);
+  TableSpec t4 = load_table_spec(resolve_data_path("experiments/anchorroute/table4.yaml"));
+  CHECK(table_tasks(pf.profile, t4.table) == 256);
+}
