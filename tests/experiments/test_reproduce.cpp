@@ -330,6 +330,24 @@ TEST_CASE("profile.trained_configs: malformed entries and missing files are exit
   CHECK(r2.output.find("from=to") != std::string::npos);
 }
 
+TEST_CASE("profile.table_num_samples: malformed entries and unknown tables are exit 2 naming the entry",
+          "[experiments]") {
+  TempDir dir("reproduce_tasks");
+  std::ofstream p(dir.path / "bad.yaml");
+  p << "profile:\n  name: bad\n  table_num_samples: [anchorroute/nosuch=64]\n";
+  p.close();
+  auto r = run_motionctl(fmt::format("reproduce --profile {} --no-figures", (dir.path / "bad.yaml").string()));
+  CHECK(r.exit_code == 2);
+  CHECK(r.output.find("anchorroute/nosuch") != std::string::npos);
+  CHECK(r.output.find("anchorroute/table4") != std::string::npos);  // the known tables are listed
+  std::ofstream q(dir.path / "bad2.yaml");
+  q << "profile:\n  name: bad\n  table_num_samples: [anchorroute/table4]\n";
+  q.close();
+  auto r2 = run_motionctl(fmt::format("reproduce --profile {} --no-figures", (dir.path / "bad2.yaml").string()));
+  CHECK(r2.exit_code == 2);
+  CHECK(r2.output.find("table_id=N") != std::string::npos);
+}
+
 TEST_CASE("table.derived: a derived column is declared in the spec, malformed entries are exit 2 naming the spec",
           "[experiments]") {
   // Table VII's cost column is declared, not recognised by its name.
