@@ -313,19 +313,21 @@ TEST_CASE("motionctl reproduce: reduced smoke replay of the AnchorRoute and cros
   CHECK(means["cross/benchmark:dir/anchorroute_exact"]["direction_error"] < 1.0);
 }
 
+// Writes `yaml` to dir/file and runs `reproduce` on it as the profile (the bad-profile tests).
+static CommandResult reproduce_with_profile(const TempDir& dir, const std::string& file, const std::string& yaml) {
+  std::ofstream(dir.path / file) << yaml;
+  return run_motionctl(fmt::format("reproduce --profile {} --no-figures", (dir.path / file).string()));
+}
+
 TEST_CASE("profile.trained_configs: malformed entries and missing files are exit 2 naming the entry",
           "[experiments]") {
   TempDir dir("reproduce_bad");
-  std::ofstream p(dir.path / "bad.yaml");
-  p << "profile:\n  name: bad\n  trained_configs: [configs/prior/flow_tiny.yaml=configs/prior/nosuch.yaml]\n";
-  p.close();
-  auto r = run_motionctl(fmt::format("reproduce --profile {} --no-figures", (dir.path / "bad.yaml").string()));
+  auto r = reproduce_with_profile(dir, "bad.yaml",
+                                  "profile:\n  name: bad\n  trained_configs: [configs/prior/flow_tiny.yaml=configs/prior/nosuch.yaml]\n");
   CHECK(r.exit_code == 2);
   CHECK(r.output.find("nosuch.yaml") != std::string::npos);
-  std::ofstream q(dir.path / "bad2.yaml");
-  q << "profile:\n  name: bad\n  trained_configs: [configs/prior/flow_tiny.yaml]\n";
-  q.close();
-  auto r2 = run_motionctl(fmt::format("reproduce --profile {} --no-figures", (dir.path / "bad2.yaml").string()));
+  auto r2 = reproduce_with_profile(dir, "bad2.yaml",
+                                   "profile:\n  name: bad\n  trained_configs: [configs/prior/flow_tiny.yaml]\n");
   CHECK(r2.exit_code == 2);
   CHECK(r2.output.find("from=to") != std::string::npos);
 }
@@ -333,17 +335,13 @@ TEST_CASE("profile.trained_configs: malformed entries and missing files are exit
 TEST_CASE("profile.table_num_samples: malformed entries and unknown tables are exit 2 naming the entry",
           "[experiments]") {
   TempDir dir("reproduce_tasks");
-  std::ofstream p(dir.path / "bad.yaml");
-  p << "profile:\n  name: bad\n  table_num_samples: [anchorroute/nosuch=64]\n";
-  p.close();
-  auto r = run_motionctl(fmt::format("reproduce --profile {} --no-figures", (dir.path / "bad.yaml").string()));
+  auto r = reproduce_with_profile(dir, "bad.yaml",
+                                  "profile:\n  name: bad\n  table_num_samples: [anchorroute/nosuch=64]\n");
   CHECK(r.exit_code == 2);
   CHECK(r.output.find("anchorroute/nosuch") != std::string::npos);
   CHECK(r.output.find("anchorroute/table4") != std::string::npos);  // the known tables are listed
-  std::ofstream q(dir.path / "bad2.yaml");
-  q << "profile:\n  name: bad\n  table_num_samples: [anchorroute/table4]\n";
-  q.close();
-  auto r2 = run_motionctl(fmt::format("reproduce --profile {} --no-figures", (dir.path / "bad2.yaml").string()));
+  auto r2 = reproduce_with_profile(dir, "bad2.yaml",
+                                   "profile:\n  name: bad\n  table_num_samples: [anchorroute/table4]\n");
   CHECK(r2.exit_code == 2);
   CHECK(r2.output.find("table_id=N") != std::string::npos);
 }
