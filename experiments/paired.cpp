@@ -290,17 +290,73 @@ std::optional<std::vector<Prepared>> prepare_all(const RowSamples& s, const std:
   return out;
 }
 
-// One stratified draw: within each group of `base`, as many indices as it has, with replacement.
+// One bootstrap draw (Rao & Wu 1988, rescaling bootstrap with m_h = n_h - 1): from each
+// stratum of n_h >= 2 tasks, n_h - 1 indices with replacement. Drawing n_h would make the
+// bootstrap variance of a stratum mean (n_h - 1) / n_h of the unbiased s_h^2 / n_h: half
+// of it with two tasks per group, none with one, which is what made claims on 30 task
+// groups of ~1 task each look decided (docs/choices.md, "Bootstrap strata").
 std::vector<int> stratified_draw(const std::vector<std::vector<int>>& strata, std::mt19937_64& rng) {
   std::vector<int> idx;
-  for (const auto& st : strata)
-    for (size_t k = 0; k < st.size(); ++k) idx.push_back(st[uniform_index(rng, st.size())]);
+  for (const auto& st : strata) {
+    const size_t m = st.size() > 1 ? st.size() - 1 : st.size();
+    for (size_t k = 0; k < m; ++k) idx.push_back(st[uniform_index(rng, st.size())]);
+  }
   return idx;
 }
 
+// One half-sample for set-level metrics (FID, KID, diversity): from each stratum about
+// half of its tasks without replacement, round(n / 2) in all (strata with an odd count
+// share the extra tasks at random). A mean over m of n tasks drawn without replacement
+// varies as (1/m - 1/n) s^2, which is the full sample's s^2 / n at m = n / 2; the
+// statistic of a smooth functional does to first order. Draws with replacement would
+// repeat tasks, and the number of distinct tasks, which moves FID's small-set bias
+// (~ c / n, c differing between rows), would vary from draw to draw: measured, that
+// widened A/A intervals of FID differences 1.6-1.7x (tests/experiments/test_paired.cpp).
+std::vector<int> half_sample_draw(const std::vector<std::vector<int>>& strata, std::mt19937_64& rng) {
+  size_t total = 0, base = 0;
+  std::vector<size_t> odd;
+  for (size_t h = 0; h < strata.size(); ++h) {
+    total += strata[h].size();
+    base += strata[h].size() / 2;
+    if (strata[h].size() % 2) odd.push_back(h);
+  }
+  const size_t target = (total + 1) / 2;
+  for (size_t i = 0; i < odd.size(); ++i) std::swap(odd[i], odd[i + uniform_index(rng, odd.size() - i)]);
+  std::vector<char> extra(strata.size(), 0);
+  for (size_t i = 0; i < odd.size() && base + i < target; ++i) extra[odd[i]] = 1;
+  std::vector<int> idx;
+  for (size_t h = 0; h < strata.size(); ++h) {
+    std::vector<int> st = strata[h];
+    const size_t m = st.size() / 2 + extra[h];
+    for (size_t k = 0; k < m; ++k) {  // partial Fisher-Yates: m distinct tasks
+      std::swap(st[k], st[k + uniform_index(rng, st.size() - k)]);
+      idx.push_back(st[k]);
+    }
+  }
+  return idx;
+}
+
+// Resampling strata: the task groups, coarsened while any stratum holds fewer than 2 tasks
+// (a single task carries no within-stratum variance) by dropping the group key's leading
+// '/'-part ("joint=head/density=1" -> "density=1" -> one stratum). A coarsened stratum mixes
+// settings, so its draws can leave a setting out of a group-mean statistic; that adds the
+// between-setting spread to the interval (conservative), never removes variance.
 std::vector<std::vector<int>> strata_of(const RowSamples& s, const std::vector<int>& members) {
+  std::vector<std::string> keys;
+  for (int i : members) keys.push_back(s.groups[i]);
+  while (true) {
+    std::map<std::string, int> count;
+    for (const auto& k : keys) ++count[k];
+    bool small = false, coarsenable = false;
+    for (const auto& [k, c] : count) small = small || c < 2, coarsenable = coarsenable || !k.empty();
+    if (!small || !coarsenable) break;
+    for (auto& k : keys) {
+      const size_t slash = k.find('/');
+      k = slash == std::string::npos ? std::string() : k.substr(slash + 1);
+    }
+  }
   std::map<std::string, std::vector<int>> by;
-  for (int i : members) by[s.groups[i]].push_back(i);
+  for (size_t j = 0; j < members.size(); ++j) by[keys[j]].push_back(members[j]);
   std::vector<std::vector<int>> out;
   for (auto& [_, v] : by) out.push_back(v);
   return out;
@@ -383,22 +439,32 @@ std::optional<PairedTest> bootstrap_difference(const RowSamples& a, const RowSam
   std::mt19937_64 rng(o.seed);
   std::vector<double> diffs;
   diffs.reserve(t.draws);
+  const bool half = set_level_metric(metric);
+  auto draw = [&](const std::vector<std::vector<int>>& st) {
+    return half ? half_sample_draw(st, rng) : stratified_draw(st, rng);
+  };
   for (int k = 0; k < t.draws; ++k) {
-    std::vector<int> ia = stratified_draw(sa, rng);
+    std::vector<int> ia = draw(sa);
     // Paired: the same resampled tasks for both rows (common random numbers).
-    std::vector<int> ib = b ? (t.paired ? ia : stratified_draw(sb, rng)) : std::vector<int>{};
+    std::vector<int> ib = b ? (t.paired ? ia : draw(sb)) : std::vector<int>{};
     const double da = mean_over(*pa, ia), db = b ? mean_over(*pb, ib) : 0.0;
     if (std::isfinite(da) && std::isfinite(db)) diffs.push_back(da - db);
   }
   if (diffs.size() < 10) return std::nullopt;
   t.draws = static_cast<int>(diffs.size());
-  t.lo = percentile(diffs, 0.025);
-  t.hi = percentile(diffs, 0.975);
   double mean = std::accumulate(diffs.begin(), diffs.end(), 0.0) / diffs.size(), ss = 0;
   for (double d : diffs) ss += (d - mean) * (d - mean);
   t.se = std::sqrt(ss / std::max<size_t>(1, diffs.size() - 1));
-  t.method = std::string(t.paired ? "paired" : "unpaired (the rows saw different tasks)") +
-             " bootstrap over tasks, stratified by task group, " + std::to_string(t.draws) + " draws";
+  // FID/KID/diversity of a half-sample carry another small-set bias than the estimate on
+  // all n (FID ~ FID_inf + c / n): the spread of the draws is the sampling spread, their
+  // location is not, so the interval is re-centred on the estimate.
+  const double shift = half ? t.estimate - mean : 0.0;
+  t.lo = percentile(diffs, 0.025) + shift;
+  t.hi = percentile(diffs, 0.975) + shift;
+  t.method = fmt::format("{} {} over tasks ({} strata of >= 2 tasks), {} draws",
+                         t.paired ? "paired" : "unpaired (the rows saw different tasks)",
+                         half ? "half-samples without replacement, re-centred," : "Rao-Wu bootstrap", sa.size(),
+                         t.draws);
   return t;
 }
 

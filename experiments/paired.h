@@ -1,7 +1,7 @@
 // Paired decisions for the table replay: what every row keeps per sample (so a
 // cached row can still be tested), the headline averaging each paper uses (mean
 // over task groups of per-group means), fast set-level metrics on resampled
-// indices (FID, KID), and the stratified paired bootstrap that gives each claim a
+// indices (FID, KID), and the stratified (Rao-Wu) paired bootstrap that gives each claim a
 // three-way verdict: holds, contradicted or undecided.
 #pragma once
 #include <map>
@@ -103,16 +103,19 @@ struct PairedTest {
   int n = 0;             // tasks per row
   int draws = 0;
   bool paired = true;    // false: the rows' tasks differ, resampled independently
-  std::string method;    // "paired bootstrap over tasks (stratified by group)", ...
+  std::string method;    // "paired Rao-Wu bootstrap over tasks (30 strata of >= 2 tasks), 1000 draws", ...
 };
 struct BootstrapOptions {
   int draws = 1000;
-  int set_level_draws = 400;  // FID/KID/diversity recomputed per draw
+  int set_level_draws = 400;  // FID/KID/diversity recomputed per half-sample
   uint64_t seed = 20240917;
 };
 // Statistic of row a minus that of row b (b = nullptr: of a alone), averaged over the
-// replicates both have; indices resampled within task groups, the same for both rows
-// when their tasks agree. nullopt when a row lacks per-sample data for the metric.
+// replicates both have; tasks resampled within strata (task groups, coarsened until each
+// holds >= 2 tasks), the same for both rows when their tasks agree: per-sample metrics by
+// the Rao-Wu bootstrap (n_h - 1 draws with replacement per stratum), set-level ones (FID,
+// KID, diversity) by half-samples without replacement, their interval re-centred on the
+// estimate. nullopt when a row lacks per-sample data for the metric.
 std::optional<PairedTest> bootstrap_difference(const RowSamples& a, const RowSamples* b, const std::string& metric,
                                                const RealismReference* ref, const EvalProtocol& p,
                                                const BootstrapOptions& o);

@@ -839,7 +839,7 @@ bool has(const RowResult* r, const std::string& metric) {
 }  // namespace
 
 // The test of row a against row b (b = nullptr: of a alone) on `metric`: the stratified
-// paired bootstrap over tasks when both rows kept per-sample records for it, else the
+// (Rao-Wu) paired bootstrap over tasks when both rows kept per-sample records for it, else the
 // paired replicate differences (metrics kept per replicate only: time, parameters,
 // multimodality).
 static std::optional<PairedTest> test_rows(const RowResult& a, const RowResult* b, const std::string& metric,

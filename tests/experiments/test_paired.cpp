@@ -1,11 +1,13 @@
 // Paired decisions: the papers' group-mean averaging against a hand-computed case,
 // Table 2's lifting errors over both camera items, the three-way verdict on
-// synthetic paired data (known effect, reversed effect, none), FID/KID on resampled
+// synthetic paired data (known effect, reversed effect, none), calibrated A/A tests
+// with one or two tasks per group (per-sample and FID), FID/KID on resampled
 // indices equal to the plain metrics, samples.h5 round trip, per-sample R-precision
 // pooling to t2m_metrics, the power formula, and common initial noise across steppers.
 #include <catch2/catch.hpp>
 
 #include <cmath>
+#include <numeric>
 #include <random>
 
 #include "control/camera.h"
@@ -167,6 +169,102 @@ TEST_CASE("paired bootstrap: three-way verdicts on synthetic paired data", "[exp
   CHECK(better_verdict(replicate_difference(pa, &pb), "lower") == "holds");
   std::vector<double> ta = {1.0, 1.2, 0.9}, tb = {1.1, 0.95, 1.05};
   CHECK(better_verdict(replicate_difference(ta, &tb), "lower") == "undecided");
+}
+
+namespace {
+
+// The groups of a ProjFlow table: 6 joints x 5 densities, tasks cycling through them.
+std::vector<std::string> omni_groups(int n) {
+  static const char* joints[] = {"pelvis", "l_foot", "r_foot", "head", "l_wrist", "r_wrist"};
+  static const char* dens[] = {"1", "2", "5", "25%", "100%"};
+  std::vector<std::string> g;
+  for (int i = 0; i < n; ++i)
+    g.push_back(fmt::format("joint={}/density={}", joints[i % 6], dens[(i / 6) % 5]));
+  return g;
+}
+
+struct Calibration {
+  double decided_rate = 0;  // A/A tests whose 95% interval excludes 0
+  double se_ratio = 0;      // mean bootstrap SE / spread of the estimate over simulated datasets
+};
+
+// Repeated A/A experiments: `make(rng)` draws one dataset's two paired rows, equal in
+// distribution (no effect), and the bootstrap tests their difference on `metric`.
+template <class Make>
+Calibration calibrate(int sims, const std::string& metric, const RealismReference* ref, Make make) {
+  std::mt19937_64 rng(11);
+  EvalProtocol p;
+  BootstrapOptions o;
+  o.draws = o.set_level_draws = 300;
+  int decided = 0;
+  std::vector<double> est, se;
+  for (int k = 0; k < sims; ++k) {
+    auto [a, b] = make(rng);
+    o.seed = 1000 + k;
+    auto t = bootstrap_difference(a, &b, metric, ref, p, o);
+    REQUIRE(t);
+    REQUIRE(t->paired);
+    decided += better_verdict(*t, "lower") != "undecided";
+    est.push_back(t->estimate);
+    se.push_back(t->se);
+  }
+  const double m = std::accumulate(est.begin(), est.end(), 0.0) / sims;
+  double ss = 0;
+  for (double e : est) ss += (e - m) * (e - m);
+  Calibration c;
+  c.decided_rate = static_cast<double>(decided) / sims;
+  c.se_ratio = std::accumulate(se.begin(), se.end(), 0.0) / sims / std::sqrt(ss / (sims - 1));
+  return c;
+}
+
+}  // namespace
+
+TEST_CASE("paired bootstrap: calibrated A/A tests with one or two tasks per group", "[experiments]") {
+  // 30 task groups (joint x density) with 1-2 tasks each, as ProjFlow's tables at 32 or 60
+  // tasks: resampling within groups of one task has no variance to draw from. The rows share
+  // a large per-task effect (common random numbers) and differ by i.i.d. noise only.
+  for (int n : {32, 60}) {
+    CAPTURE(n);
+    auto c = calibrate(300, "avg_err", nullptr, [n](std::mt19937_64& rng) {
+      std::normal_distribution<double> g(0.0, 1.0);
+      std::vector<double> va, vb;
+      for (int i = 0; i < n; ++i) {
+        const double task = 5.0 + 2.0 * g(rng);
+        va.push_back(task + 0.1 * g(rng));
+        vb.push_back(task + 0.1 * g(rng));
+      }
+      const auto groups = omni_groups(n);
+      return std::make_pair(synthetic_row(groups, va, "avg_err"), synthetic_row(groups, vb, "avg_err"));
+    });
+    // Nominal 5% of A/A tests decided; drawing n_h of n_h tasks decided ~90% at n = 32, ~16% at 60.
+    CHECK(c.decided_rate <= 0.10);
+    CHECK(c.se_ratio > 0.8);
+    CHECK(c.se_ratio < 1.4);
+  }
+  // FID under common random numbers: b = 0.8 a + 0.6 e is distributed as a, so E FID(a) = E FID(b).
+  std::mt19937_64 rr(7);
+  std::normal_distribution<double> g(0.0, 1.0);
+  Embeddings ref(400, 6);
+  for (int i = 0; i < ref.size(); ++i) ref.data()[i] = g(rr);
+  RealismReference reference(ref);
+  auto c = calibrate(150, "fid", &reference, [](std::mt19937_64& rng) {
+    std::normal_distribution<double> g(0.0, 1.0);
+    const int n = 32;
+    Embeddings xa(n, 6), xb(n, 6);
+    for (int i = 0; i < xa.size(); ++i) {  // both off the reference, as every generator is
+      const double z = g(rng);
+      xa.data()[i] = 0.5 + 1.3 * z;
+      xb.data()[i] = 0.5 + 1.3 * (0.8 * z + 0.6 * g(rng));
+    }
+    const auto groups = omni_groups(n);
+    RowSamples a = synthetic_row(groups, std::vector<double>(n, 0.0), "avg_err"), b = a;
+    a.motion.push_back(xa);
+    b.motion.push_back(xb);
+    return std::make_pair(a, b);
+  });
+  CHECK(c.decided_rate <= 0.12);
+  CHECK(c.se_ratio > 0.7);
+  CHECK(c.se_ratio < 1.6);
 }
 
 TEST_CASE("FID and KID on resampled indices equal the plain metrics", "[experiments]") {
