@@ -308,10 +308,10 @@ std::vector<int> stratified_draw(const std::vector<std::vector<int>>& strata, st
 // half of its tasks without replacement, round(n / 2) in all (strata with an odd count
 // share the extra tasks at random). A mean over m of n tasks drawn without replacement
 // varies as (1/m - 1/n) s^2, which is the full sample's s^2 / n at m = n / 2; the
-// statistic of a smooth functional does to first order. Draws with replacement would
-// repeat tasks, and the number of distinct tasks, which moves FID's small-set bias
-// (~ c / n, c differing between rows), would vary from draw to draw: measured, that
-// widened A/A intervals of FID differences 1.6-1.7x (tests/experiments/test_paired.cpp).
+// statistic of a smooth functional does to first order. Unlike draws with replacement,
+// no row is duplicated and every draw has the same number of distinct tasks, which
+// FID's small-set bias (~ c / n, c differing between rows) depends on; measured, both
+// draws are calibrated off the reference (docs/choices.md, "Bootstrap strata").
 std::vector<int> half_sample_draw(const std::vector<std::vector<int>>& strata, std::mt19937_64& rng) {
   size_t total = 0, base = 0;
   std::vector<size_t> odd;
@@ -461,10 +461,10 @@ std::optional<PairedTest> bootstrap_difference(const RowSamples& a, const RowSam
   const double shift = half ? t.estimate - mean : 0.0;
   t.lo = percentile(diffs, 0.025) + shift;
   t.hi = percentile(diffs, 0.975) + shift;
-  t.method = fmt::format("{} {} over tasks ({} strata of >= 2 tasks), {} draws",
+  t.method = fmt::format("{} {} over tasks ({} of >= 2 tasks), {} draws",
                          t.paired ? "paired" : "unpaired (the rows saw different tasks)",
-                         half ? "half-samples without replacement, re-centred," : "Rao-Wu bootstrap", sa.size(),
-                         t.draws);
+                         half ? "half-samples without replacement, re-centred," : "Rao-Wu bootstrap",
+                         sa.size() == 1 ? std::string("1 stratum") : fmt::format("{} strata", sa.size()), t.draws);
   return t;
 }
 

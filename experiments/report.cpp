@@ -1029,9 +1029,12 @@ std::string render_summary(const std::vector<ClaimCheck>& claims, const std::vec
   s += fmt::format("Claims: {} hold, {} contradicted, {} undecided, {} not run ({} of {} run claims decided, {:.0f}%).\n\n",
                    holds, contra, undecided, notrun, holds + contra, run, run ? 100.0 * (holds + contra) / run : 0.0);
   s += "Each claim is tested on the paired difference between its rows: every row of a table sees the same tasks, "
-       "captions and initial noise (same seed per replicate), and a bootstrap over tasks (resampled within task "
-       "groups, the same draws for both rows; set-level metrics such as FID and KID recomputed from the stored "
-       "embeddings per draw; mean over replicates) gives a 95% interval [lo, hi] of the difference. **holds**: the "
+       "captions and initial noise (same seed per replicate), and resampling over tasks gives a 95% interval [lo, hi] "
+       "of the difference: strata are the task groups, coarsened until each holds at least 2 tasks; per-sample "
+       "metrics by the Rao-Wu bootstrap (n_h - 1 draws with replacement per stratum), set-level ones (FID, KID, "
+       "diversity) recomputed from the stored embeddings of half-samples drawn without replacement, re-centred on "
+       "the estimate; the same draws for both rows; mean over replicates (docs/choices.md, \"Bootstrap strata and "
+       "draws\"). **holds**: the "
        "interval lies on the claimed side of 0 (of the tolerance for zero claims); **contradicted**: on the other "
        "side; **undecided**: it contains 0. Metrics kept per replicate only (time, parameters, multimodality) use a "
        "Student-t interval of the paired replicate differences. For undecided claims the last column gives the tasks "
