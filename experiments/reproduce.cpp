@@ -54,15 +54,24 @@ static bool selected(const std::string& id, const std::vector<std::string>& want
   return false;
 }
 
-static std::string git_commit() {
+static std::string run_git(const std::string& dir, const std::string& args) {
   std::string out;
-  FILE* p = popen(("git -C " + source_dir() + " rev-parse --short HEAD 2>/dev/null").c_str(), "r");
-  if (!p) return "unknown";
-  char buf[64];
+  FILE* p = popen(("git -C '" + dir + "' " + args + " 2>/dev/null").c_str(), "r");
+  if (!p) return out;
+  char buf[256];
   while (fgets(buf, sizeof buf, p)) out += buf;
   pclose(p);
-  while (!out.empty() && (out.back() == '\n' || out.back() == '\r')) out.pop_back();
-  return out.empty() ? "unknown" : out;
+  return out;
+}
+
+std::string source_commit(const std::string& dir) {
+  std::string head = run_git(dir, "rev-parse --short HEAD");
+  while (!head.empty() && (head.back() == '\n' || head.back() == '\r')) head.pop_back();
+  if (head.empty()) return "unknown";
+  // Untracked files are left out: run outputs (runs/, results/) and editor files are not code.
+  const std::string changed = run_git(
+      dir, "status --porcelain --untracked-files=no -- src eval experiments configs tools CMakeLists.txt");
+  return changed.empty() ? head : head + "+dirty";
 }
 
 // What the numbers of a replay depend on besides the specs, key=value, from the
@@ -251,7 +260,7 @@ ReproduceResult reproduce(const ReproduceOptions& opt) {
   res.results_dir = out_dir.string();
   const fs::path results_file = out_dir / "results.h5";
   ReplayRun run;
-  run.commit = git_commit();
+  run.commit = source_commit(source_dir());
   run.date = run_timestamp();
   run.threads = pf.profile.threads;
   run.overrides = opt.profile_overrides;

@@ -27,6 +27,13 @@ struct ReproduceResult {
 // Lists the experiment specs under specs_root (tableN.yaml files outside paper_numbers/), sorted.
 std::vector<std::string> list_table_specs(const std::string& specs_root);
 
+// The commit a replay stamps on its results: `git rev-parse --short HEAD` of the
+// checkout at `dir`, with "+dirty" when a tracked file under what the numbers depend on
+// (src, eval, experiments, configs, tools, CMakeLists.txt) differs from HEAD, so a
+// summary made by uncommitted code does not claim a commit's name; "unknown" outside a
+// git checkout or without git.
+std::string source_commit(const std::string& dir);
+
 ReproduceResult reproduce(const ReproduceOptions& opt);
 
 }  // namespace mc

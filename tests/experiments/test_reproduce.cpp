@@ -1,6 +1,7 @@
 // The table replay end to end at a reduced smoke scale: `motionctl reproduce` on a
 // small fixture, a briefly trained evaluator and prior; every table file present
-// and well-formed, the ProjFlow rows exact, cached rows reused, bad specs exit 2.
+// and well-formed, the ProjFlow rows exact, cached rows reused, bad specs exit 2, and
+// the commit stamp marks uncommitted code (+dirty).
 #include <catch2/catch.hpp>
 
 #include <H5Cpp.h>
@@ -13,6 +14,7 @@
 #include <sstream>
 
 #include "experiments/experiment.h"
+#include "experiments/reproduce.h"
 #include "test_util.h"
 
 using namespace mc::test;
@@ -376,4 +378,23 @@ TEST_CASE("table.derived: a derived column is declared in the spec, malformed en
     CHECK(msg.find(fragment) != std::string::npos);
     CHECK(msg.find("t.yaml") != std::string::npos);
   }
+}
+
+TEST_CASE("source_commit: the replay's commit stamp says +dirty when tracked code differs from HEAD",
+          "[experiments]") {
+  TempDir dir("commit_stamp");
+  const std::string d = dir.path.string();
+  CHECK(mc::source_commit(d) == "unknown");  // not a git checkout
+  fs::create_directories(dir.path / "src");
+  std::ofstream(dir.path / "src" / "a.cpp") << "int a;\n";
+  const std::string git = "git -C '" + d + "' -c user.name=t -c user.email=t@t ";
+  REQUIRE(std::system((git + "init -q && " + git + "add src && " + git + "commit -qm c >/dev/null").c_str()) == 0);
+  const std::string clean = mc::source_commit(d);
+  CHECK(clean != "unknown");
+  CHECK(clean.find("+dirty") == std::string::npos);
+  fs::create_directories(dir.path / "runs");
+  std::ofstream(dir.path / "runs" / "out.txt") << "x\n";  // untracked run output: still clean
+  CHECK(mc::source_commit(d) == clean);
+  std::ofstream(dir.path / "src" / "a.cpp") << "int b;\n";
+  CHECK(mc::source_commit(d) == clean + "+dirty");
 }
