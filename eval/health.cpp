@@ -351,7 +351,10 @@ std::string json_quote(const std::string& s) {
 namespace {
 
 std::string json_string(const std::string& s) { return json_quote(s); }
-std::string json_number(double v) { return std::isfinite(v) ? fmt::format("{:.10g}", v) : "null"; }
+// Shortest representation that reads back to the same double: a report re-read from a
+// run's cached health.json then gives the same ratios, byte for byte, as a fresh one
+// (with 10 digits the ratios moved in their last digit between the two).
+std::string json_number(double v) { return std::isfinite(v) ? fmt::format("{}", v) : "null"; }
 std::string json_number(const std::optional<double>& v) { return v ? json_number(*v) : "null"; }
 
 }  // namespace

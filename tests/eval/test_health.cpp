@@ -69,6 +69,9 @@ TEST_CASE("health report: JSON round trip, escaping, verdict, targets in --descr
   r.metrics.push_back({"kid", "KID (N = 8)", -0.01, 0.002, "", std::nullopt});
   r.metrics.push_back({"foot_skating", "foot skating ratio", 0.2, 0.0, "<= 3x GT", false});
   r.metrics.push_back({"bone_length_std_mm", "bone-length std (mm)", 1.0, std::nullopt, "<= 5 mm", true});
+  // Values that 10 significant digits would not carry: a report re-read from its cached
+  // health.json must give the same ratios as the fresh one, to the last bit.
+  r.metrics.push_back({"acceleration", "mean |acceleration| (m/s^2)", 1.0 / 3.0, 5.107186364123456, "<= 2x GT", true});
   r.validation["val_fm_t0.10"] = 0.25;
   REQUIRE_FALSE(r.healthy());
   REQUIRE(r.failed() == std::vector<std::string>{"FID (N = 8)", "foot skating ratio"});
@@ -81,7 +84,9 @@ TEST_CASE("health report: JSON round trip, escaping, verdict, targets in --descr
   CHECK(back.run_dir == r.run_dir);
   CHECK(back.generator == r.generator);
   CHECK(back.seed == 4);
-  REQUIRE(back.metrics.size() == 4);
+  REQUIRE(back.metrics.size() == 5);
+  CHECK(back.metrics[4].value == 1.0 / 3.0);
+  CHECK(*back.metrics[4].ground_truth == 5.107186364123456);
   CHECK(back.metrics[0].value == 3.5);
   CHECK(*back.metrics[0].ground_truth == 1.5);
   CHECK(back.metrics[1].value == -0.01);
