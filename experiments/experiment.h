@@ -34,6 +34,7 @@ struct ProfileConfig : Config {
   std::string runs_root = "runs/experiments";
   std::string results_root = "results";
   bool health = true;  // prior health of every trained prior the rows use
+  int health_samples = 0;  // N of those checks (0 = num_samples); issue 13's targets ask for N >= 256
   void visit(FieldVisitor& v) override {
     v("name", name, "profile name (results/<name>/)");
     v("data", data, "ground-truth motion file: tasks come from its split, FID references it");
@@ -58,6 +59,9 @@ struct ProfileConfig : Config {
     v("health", health,
       "check every trained prior and tokenizer the rows use (motionctl health): verdicts at the top of each table "
       "and in results/<profile>/health.md");
+    v("health_samples", health_samples,
+      "samples of each health check (0 = num_samples); capped so that N test clips and N floor clips exist",
+      at_least(0));
   }
   std::string validate() const override;
 };

@@ -49,11 +49,13 @@ ProfileHealth::ProfileHealth(const ProfileFile& pf, const MotionSet& data) : pro
   base_.substitutions = p.substitutions;  // the rows' sampling budgets
   base_.protocol = pf.protocol;
   base_.protocol.repeats = p.repeats;
-  // N: the rows' sample count, capped so that N test clips and N floor clips exist.
+  // N: profile.health_samples, else the rows' sample count, capped so that N test clips
+  // and N floor clips exist.
   const int test = static_cast<int>(data.indices_of_split("test").size());
   const int val = static_cast<int>(data.indices_of_split("val").size());
+  const int wanted = p.health_samples > 0 ? p.health_samples : p.num_samples > 0 ? p.num_samples : 32;
   // At least 3 (the check's minimum) even when the rows use fewer.
-  int n = std::min(std::max(p.num_samples > 0 ? p.num_samples : 32, 3), test);
+  int n = std::min(std::max(wanted, 3), test);
   while (n >= 3 && !(val >= n || test >= 2 * n)) --n;
   if (n < 3)
     cap_error_ = fmt::format("{}: the test split ({} clips) and val split ({}) leave fewer than 3 samples with "

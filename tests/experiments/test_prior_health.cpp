@@ -38,6 +38,18 @@ TEST_CASE("reproduce's prior health: table tops name the verdict, health.md/json
   const MotionSet data = read_motion_file(fx);
   ProfileHealth health(pf, data);
   CHECK(health.samples() == 10);
+  {
+    // health_samples sets N apart from the rows' count (and is capped the same way).
+    ProfileFile own = pf;
+    own.profile.health_samples = 4;
+    CHECK(ProfileHealth(own, data).samples() == 4);
+    own.profile.num_samples = 3;
+    CHECK(ProfileHealth(own, data).samples() == 4);
+    own.profile.health_samples = 0;
+    CHECK(ProfileHealth(own, data).samples() == 3);
+    own.profile.health_samples = 256;
+    CHECK(ProfileHealth(own, data).samples() == 10);
+  }
 
   TableResult t;
   t.spec.table.id = "projflow/table9";
