@@ -162,6 +162,15 @@ std::unique_ptr<Trainable> tiny_flow_trainer(TrainJobConfig& job, const std::str
   TrainContext ctx{data, torch::kCPU, &job, 0, trim};
   return make_trainable(job.model, ctx);
 }
+// The same non-trivial weights in every trainer (AdaLN-Zero would make the output 0),
+// so arms that differ only in their loss see the same network.
+void same_random_weights(std::initializer_list<Trainable*> trainers) {
+  for (auto* tr : trainers) {
+    torch::manual_seed(21);
+    torch::NoGradGuard ng;
+    for (auto& p : tr->module().parameters()) p.normal_(0.0, 0.1);
+  }
+}
 }  // namespace
 
 TEST_CASE("flow prior: batches trimmed to their longest clip, FLOPs count valid frames only",
@@ -170,12 +179,7 @@ TEST_CASE("flow prior: batches trimmed to their longest clip, FLOPs count valid 
   std::shared_ptr<MotionDataset> data;
   auto padded = tiny_flow_trainer(a, "", false, &data);
   auto trimmed = tiny_flow_trainer(b, "", true);
-  // Same non-trivial weights in both (AdaLN-Zero would make the output 0).
-  for (auto* tr : {padded.get(), trimmed.get()}) {
-    torch::manual_seed(21);
-    torch::NoGradGuard ng;
-    for (auto& p : tr->module().parameters()) p.normal_(0.0, 0.1);
-  }
+  same_random_weights({padded.get(), trimmed.get()});
   // Clips 0 and 2 (12 and 17 frames of 30): the trimmed batch has 17 frames.
   CHECK(data->batch({0, 2}, 0, 1, torch::kCPU, true).joints.size(1) == 17);
   CHECK(data->batch({0, 2}, 0, 1, torch::kCPU, false).joints.size(1) == 30);
@@ -216,11 +220,7 @@ TEST_CASE("flow prior: the smoothness term adds the error's frame-to-frame diffe
   TrainJobConfig a, b;
   auto plain = tiny_flow_trainer(a, "", true);
   auto smooth = tiny_flow_trainer(b, "  smooth_weight: 2.0\n", true);
-  for (auto* tr : {plain.get(), smooth.get()}) {
-    torch::manual_seed(21);
-    torch::NoGradGuard ng;
-    for (auto& p : tr->module().parameters()) p.normal_(0.0, 0.1);
-  }
+  same_random_weights({plain.get(), smooth.get()});
   torch::manual_seed(9);
   double lp = plain->loss({0, 1}).loss.item<double>();
   torch::manual_seed(9);
@@ -285,11 +285,7 @@ TEST_CASE("flow prior: the geometry loss section is off by default and then abse
   auto geo = tiny_flow_trainer(b, "  geometry_loss:\n    bone_weight: 1.0\n    contact_weight: 1.0\n", true);
   CHECK(dump_config(a).find("geometry_loss") == std::string::npos);
   CHECK(dump_config(b).find("geometry_loss") != std::string::npos);
-  for (auto* tr : {plain.get(), geo.get()}) {
-    torch::manual_seed(21);
-    torch::NoGradGuard ng;
-    for (auto& p : tr->module().parameters()) p.normal_(0.0, 0.1);
-  }
+  same_random_weights({plain.get(), geo.get()});
   torch::manual_seed(9);
   double lp = plain->loss({0, 1}).loss.item<double>();
   torch::manual_seed(9);
