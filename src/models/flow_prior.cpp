@@ -109,38 +109,6 @@ FlowValidationInputs flow_validation_inputs(const MotionDataset& data, const std
   return in;
 }
 
-torch::Tensor flow_geometry_loss(const FlowGeometryLossConfig& g, const Skeleton& sk, const torch::Tensor& err_m,
-                                 const torch::Tensor& gt_height, const torch::Tensor& valid,
-                                 const torch::Tensor& whole_valid) {
-  const auto dev = err_m.device();
-  auto total = torch::zeros({}, err_m.options());
-  if (g.bone_weight > 0) {
-    std::vector<int64_t> child, parent;
-    for (int j = 0; j < sk.num_joints(); ++j)
-      if (sk.parents[j] >= 0) child.push_back(j), parent.push_back(sk.parents[j]);
-    auto ci = torch::tensor(child, torch::kLong).to(dev), pi = torch::tensor(parent, torch::kLong).to(dev);
-    auto be = err_m.index_select(2, ci) - err_m.index_select(2, pi);  // bone-vector errors
-    total = total + g.bone_weight * (be.pow(2) * valid).sum() / (whole_valid.sum() * double(child.size()) * 3 + 1e-8);
-  }
-  const int64_t T = err_m.size(1);
-  if (g.contact_weight > 0 && T > 1) {
-    const auto& toes = sk.role("toes");
-    auto ti = torch::tensor(std::vector<int64_t>(toes.begin(), toes.end()), torch::kLong).to(dev);
-    auto low = (gt_height.index_select(2, ti) < g.contact_height).to(err_m.scalar_type());  // [B, T, toes]
-    auto contact = low.narrow(1, 1, T - 1) * low.narrow(1, 0, T - 1);
-    auto v = valid.view({valid.size(0), T, 1});
-    auto pairs = v.narrow(1, 1, T - 1) * v.narrow(1, 0, T - 1);
-    auto wv = whole_valid.view({whole_valid.size(0), -1});
-    const int64_t Tw = wv.size(1);
-    auto whole_pairs = (wv.narrow(1, 1, Tw - 1) * wv.narrow(1, 0, Tw - 1)).sum();
-    auto et = err_m.index_select(2, ti);
-    auto d = et.narrow(1, 1, T - 1) - et.narrow(1, 0, T - 1);        // [B, T-1, toes, 3]
-    auto horiz = d.select(3, 0).pow(2) + d.select(3, 2).pow(2);       // squared horizontal slip error
-    total = total + g.contact_weight * (horiz * contact * pairs).sum() / (whole_pairs * double(toes.size()) + 1e-8);
-  }
-  return total;
-}
-
 namespace {
 
 class FlowPriorTrainer : public Trainable {
@@ -305,7 +273,7 @@ class FlowPriorTrainer : public Trainable {
     if (cfg_.geometry_loss.enabled()) {
       auto scale = net_->joint_std.to(err.device(), err.scalar_type());
       auto height = x1.select(3, 1) * scale[1] + net_->joint_mean.to(err.device(), err.scalar_type())[1];
-      loss = loss + flow_geometry_loss(cfg_.geometry_loss, ctx_.data->set().skeleton, err * scale, height, m, wm);
+      loss = loss + geometry_loss(cfg_.geometry_loss, ctx_.data->set().skeleton, err * scale, height, m, wm);
     }
     return {loss};
   }

@@ -11,50 +11,11 @@
 #include "data/skeleton.h"
 #include "data/text_vocab.h"
 #include "models/flow_transformer.h"
+#include "models/geometry_loss.h"
 #include "models/motion_dataset.h"
 #include "models/text_encoder.h"
 
 namespace mc {
-
-// Geometric terms added to the flow loss (issue 13; MDM trains with such losses).
-// Both are squared errors of the same error as the main loss (velocity or clean),
-// measured in world metres per axis (the error times the per-axis std): a
-// positive-definite reweighting of the flow-matching error, so the loss still has
-// its minimiser at the conditional expectation (the flow on absolute joints is
-// unchanged); it only decides where a finite network spends its precision. Off by
-// default and then left out of the dumped config (every earlier run keeps its name).
-//   bone_weight: error of every bone vector (joint minus parent), i.e. of the
-//     skeleton Laplacian's edges, the terms ProjFlow's kinematic metric (eq. (11))
-//     weighs by w_kin; the z-scored loss weighs a 1 cm pose error on metres of root
-//     travel almost not at all.
-//   contact_weight: the frame-to-frame difference of the toes' horizontal error on
-//     pairs of frames where the ground-truth toe is below contact_height at both
-//     frames (MDM's foot-contact loss, on the error so a moving ground-truth toe is
-//     not pulled to rest).
-struct FlowGeometryLossConfig : Config {
-  double bone_weight = 0.0;
-  double contact_weight = 0.0;
-  double contact_height = 0.05;  // the foot-skating metric's contact height (reference-facts)
-  void visit(FieldVisitor& v) override {
-    v("bone_weight", bone_weight, "weight of the squared bone-vector error in metres (0 = off)",
-      in_range(0.0, 1e6));
-    v("contact_weight", contact_weight,
-      "weight of the squared frame-to-frame toe error (horizontal, metres) on ground-truth contact frames (0 = off)",
-      in_range(0.0, 1e6));
-    v("contact_height", contact_height, "a ground-truth toe below this height (m) at both frames is in contact",
-      in_range(0.0, 1.0));
-  }
-  bool enabled() const { return bone_weight > 0 || contact_weight > 0; }
-  bool omitted_from_dump() const override { return !enabled() && contact_height == 0.05; }
-};
-
-// The geometry terms on one batch: err_m [B, T, J, 3] the loss's error in metres,
-// gt_height [B, T, J] the ground truth's joint heights (m), valid [B, T, 1, 1] this
-// shard's valid frames, whole_valid [B', T'] the whole batch's (the means are over
-// it, so data-parallel shares add up). Zero when both weights are 0.
-torch::Tensor flow_geometry_loss(const FlowGeometryLossConfig& g, const Skeleton& sk, const torch::Tensor& err_m,
-                                 const torch::Tensor& gt_height, const torch::Tensor& valid,
-                                 const torch::Tensor& whole_valid);
 
 // The text encoder's text_* fields (TextEncoderFields) are trained jointly, unless
 // text_encoder names a contrastively pretrained `text_clip` run (no CLIP here).
@@ -79,7 +40,7 @@ struct FlowPriorConfig : Config, TextEncoderFields {
   double clean_eps = 0.05;
   double smooth_weight = 0.0;
   int temporal_kernel = 1;
-  FlowGeometryLossConfig geometry_loss;  // off by default (and then absent from the dump)
+  GeometryLossConfig geometry_loss;  // off by default (and then absent from the dump)
   TextEncoderSourceConfig text_encoder;  // off by default (and then absent from the dump)
   void visit(FieldVisitor& v) override {
     v("depth", depth, "transformer blocks L", in_range(1, 64));

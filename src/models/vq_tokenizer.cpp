@@ -426,19 +426,37 @@ class VqTokenizerTrainer : public Trainable {
                 {"commit", out.commit_loss.detach()},
                 {"perplexity", shard.replicated(out.perplexity)},
                 {"resets", shard.replicated(out.resets.to(torch::kFloat32))}};
-    if (model_->invariant() && cfg_.representation.world_weight > 0) {
-      // Joints recovered by integration over the window (from the frame before it),
-      // prediction against target: the mean per-joint Euclidean error in metres
-      // (MPJPE; its gradient does not fade as the drift gets small, as a squared one would).
+    const bool world_loss = model_->invariant() && cfg_.representation.world_weight > 0;
+    if (world_loss || cfg_.geometry_loss.enabled()) {
+      // World joints (metres) of prediction and target: for the invariant
+      // representation recovered by integration over the window (from the frame
+      // before it), so root drift inside the window counts.
       const int64_t J = model_->num_joints();
-      auto fm = model_->feature_mean, fs = model_->feature_std;
-      auto wy = recover_world_from_invariant(out.recon * fs + fm, J);
-      auto wx = recover_world_from_invariant(x * fs + fm, J);
-      auto mw = mask.unsqueeze(-1).to(x.dtype());  // [B, T, 1]
-      auto err = ((wy - wx).pow(2).sum(-1) + 1e-12).sqrt();  // [B, T, J]
-      auto world = (err * mw).sum() / (whole_mask.unsqueeze(-1).to(x.dtype()).sum() * J + 1e-8);
-      lo.loss = lo.loss + cfg_.representation.world_weight * world;
-      lo.parts.emplace_back("world", world.detach());
+      torch::Tensor wy, wx;
+      if (model_->invariant()) {
+        auto fm = model_->feature_mean, fs = model_->feature_std;
+        wy = recover_world_from_invariant(out.recon * fs + fm, J);
+        wx = recover_world_from_invariant(x * fs + fm, J);
+      } else {
+        wy = model_->denormalize(out.recon.view({x.size(0), x.size(1), J, 3}));
+        wx = model_->denormalize(x.view({x.size(0), x.size(1), J, 3}));
+      }
+      if (world_loss) {
+        // The mean per-joint Euclidean error in metres (MPJPE; its gradient does not
+        // fade as the drift gets small, as a squared one would).
+        auto mw = mask.unsqueeze(-1).to(x.dtype());  // [B, T, 1]
+        auto err = ((wy - wx).pow(2).sum(-1) + 1e-12).sqrt();  // [B, T, J]
+        auto world = (err * mw).sum() / (whole_mask.unsqueeze(-1).to(x.dtype()).sum() * J + 1e-8);
+        lo.loss = lo.loss + cfg_.representation.world_weight * world;
+        lo.parts.emplace_back("world", world.detach());
+      }
+      if (cfg_.geometry_loss.enabled()) {
+        auto valid = mask.to(x.dtype()).view({x.size(0), x.size(1), 1, 1});
+        auto geo = geometry_loss(cfg_.geometry_loss, ctx_.data->set().skeleton, wy - wx, wx.select(3, 1), valid,
+                                 whole_mask.to(x.dtype()));
+        lo.loss = lo.loss + geo;
+        lo.parts.emplace_back("geometry", geo.detach());
+      }
     }
     return lo;
   }

@@ -13,6 +13,7 @@
 #include <torch/torch.h>
 
 #include "core/config.h"
+#include "models/geometry_loss.h"
 #include "data/features.h"
 #include "data/motion_set.h"
 #include "data/skeleton.h"
@@ -211,6 +212,7 @@ struct VqTokenizerConfig : Config {
   std::string recon_loss = "smooth_l1";
   double velocity_weight = 0.5;
   VqRepresentationConfig representation;
+  GeometryLossConfig geometry_loss;  // off by default (and then absent from the dump)
   void visit(FieldVisitor& v) override {
     v("width", width, "conv channels", at_least(8));
     v("code_dim", code_dim, "codebook vector size D", at_least(1));
@@ -226,6 +228,9 @@ struct VqTokenizerConfig : Config {
       one_of({"smooth_l1", "mse"}));
     v("velocity_weight", velocity_weight, "weight of the frame-difference reconstruction loss", at_least(0.0));
     v("representation", representation, "what the tokenizer reads and writes (absolute_joints by default)");
+    v("geometry_loss", geometry_loss,
+      "bone-vector and toe-slip terms on the reconstructed world joints (issue 13; off by default): for the "
+      "invariant representation on the joints integrated over the training window");
   }
 };
 

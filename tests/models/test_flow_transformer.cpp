@@ -235,7 +235,7 @@ TEST_CASE("flow prior: the geometry loss sees bone and toe-slip errors, not comm
           "[flow]") {
   const Skeleton& sk = humanml3d_skeleton();
   const int64_t B = 3, T = 7, J = sk.num_joints();
-  FlowGeometryLossConfig g;
+  GeometryLossConfig g;
   g.bone_weight = 2.0;
   g.contact_weight = 5.0;
   auto valid = torch::ones({B, T, 1, 1});
@@ -248,35 +248,35 @@ TEST_CASE("flow prior: the geometry loss sees bone and toe-slip errors, not comm
     // is no bone error; a constant error of every joint over time is no slip.
     auto common = torch::randn({B, T, 1, 3}).expand({B, T, J, 3}).contiguous();
     g.contact_weight = 0.0;
-    CHECK(flow_geometry_loss(g, sk, common, ground, valid, whole).item<double>() == Approx(0.0).margin(1e-10));
+    CHECK(geometry_loss(g, sk, common, ground, valid, whole).item<double>() == Approx(0.0).margin(1e-10));
     g.contact_weight = 5.0;
     g.bone_weight = 0.0;
     auto still = torch::randn({B, 1, J, 3}).expand({B, T, J, 3}).contiguous();
-    CHECK(flow_geometry_loss(g, sk, still, ground, valid, whole).item<double>() == Approx(0.0).margin(1e-10));
+    CHECK(geometry_loss(g, sk, still, ground, valid, whole).item<double>() == Approx(0.0).margin(1e-10));
     // A sliding toe counts on contact frames only, and only horizontally.
     auto slide = torch::zeros({B, T, J, 3});
     const int toe = sk.role("toes")[0];
     slide.select(2, toe).select(2, 0).copy_(torch::arange(T).to(torch::kFloat).expand({B, T}) * 0.1);
-    const double on = flow_geometry_loss(g, sk, slide, ground, valid, whole).item<double>();
+    const double on = geometry_loss(g, sk, slide, ground, valid, whole).item<double>();
     // 0.1 m per frame on one of the two toes: 5 * 0.01 * (T - 1 pairs of B clips) / (pairs * 2 toes).
     CHECK(on == Approx(5.0 * 0.01 / 2));
-    CHECK(flow_geometry_loss(g, sk, slide, air, valid, whole).item<double>() == Approx(0.0).margin(1e-10));
+    CHECK(geometry_loss(g, sk, slide, air, valid, whole).item<double>() == Approx(0.0).margin(1e-10));
     auto lift = torch::zeros({B, T, J, 3});
     lift.select(2, toe).select(2, 1).copy_(torch::arange(T).to(torch::kFloat).expand({B, T}) * 0.1);
-    CHECK(flow_geometry_loss(g, sk, lift, ground, valid, whole).item<double>() == Approx(0.0).margin(1e-10));
+    CHECK(geometry_loss(g, sk, lift, ground, valid, whole).item<double>() == Approx(0.0).margin(1e-10));
     // Moving one joint alone is a bone error on each bone it ends: 1 m on a leaf joint.
     g.contact_weight = 0.0;
     g.bone_weight = 2.0;
     auto one = torch::zeros({B, T, J, 3});
     one.select(2, toe).select(2, 2).fill_(1.0);
-    CHECK(flow_geometry_loss(g, sk, one, air, valid, whole).item<double>() == Approx(2.0 / ((J - 1) * 3)));
+    CHECK(geometry_loss(g, sk, one, air, valid, whole).item<double>() == Approx(2.0 / ((J - 1) * 3)));
     g.contact_weight = 5.0;
   }
   // Off: exactly zero; invalid frames do not count.
-  FlowGeometryLossConfig off;
-  CHECK(flow_geometry_loss(off, sk, torch::randn({B, T, J, 3}), ground, valid, whole).item<double>() == 0.0);
+  GeometryLossConfig off;
+  CHECK(geometry_loss(off, sk, torch::randn({B, T, J, 3}), ground, valid, whole).item<double>() == 0.0);
   auto none = torch::zeros({B, T, 1, 1});
-  CHECK(flow_geometry_loss(g, sk, torch::randn({B, T, J, 3}), ground, none, whole).item<double>() == 0.0);
+  CHECK(geometry_loss(g, sk, torch::randn({B, T, J, 3}), ground, none, whole).item<double>() == 0.0);
 }
 
 TEST_CASE("flow prior: the geometry loss section is off by default and then absent from the dump", "[flow]") {

@@ -6,7 +6,10 @@
 #include <cmath>
 #include <sstream>
 
+#include "../data/data_test_util.h"
+#include "cli/jobs.h"
 #include "core/error.h"
+#include "data/normalizer.h"
 #include "data/features.h"
 #include "models/vq_tokenizer.h"
 #include "test_util.h"
@@ -463,4 +466,58 @@ TEST_CASE("invariant vq_tiny trains, reports the oracle control error and loads 
   auto y = tok.model->decode(tok.model->encode(b.joints.flatten(2), b.mask));
   CHECK(y.sizes() == b.joints.flatten(2).sizes());
   CHECK(torch::isfinite(y).all().item<bool>());
+}
+
+// ---------------------------------------------------------------- geometry terms (issue 13)
+
+namespace {
+
+std::unique_ptr<Trainable> tiny_vq_trainer(TrainJobConfig& job, const std::string& extra) {
+  parse_config(config_from_string("model:\n  type: vq_tokenizer\n  width: 16\n  code_dim: 8\n  codebook_size: 16\n"
+                                  "  res_depth: 1\n" +
+                                  extra),
+               job);
+  MotionSet set = test::random_motion_set({12, 28, 17, 9}, {"train", "train", "val", "val"});
+  set.stats = compute_norm_stats(set);
+  auto data = std::make_shared<MotionDataset>(set, "<memory>");
+  TrainContext ctx{data, torch::kCPU, &job, 0, false};
+  torch::manual_seed(4);  // the same codebook buffer in every trainer
+  return make_trainable(job.model, ctx);
+}
+
+}  // namespace
+
+TEST_CASE("tokenizer: the geometry terms add exactly their part to the loss, in both representations",
+          "[tokenizer][invariant]") {
+  const std::string invariant = "  representation:\n    type: invariant\n    world_weight: 0.5\n";
+  const std::string geo = "  geometry_loss:\n    bone_weight: 3.0\n    contact_weight: 2.0\n";
+  for (const std::string& rep : {std::string(), invariant}) {
+    INFO("representation: " << (rep.empty() ? "absolute" : "invariant"));
+    TrainJobConfig a, b;
+    auto off = tiny_vq_trainer(a, rep);
+    auto on = tiny_vq_trainer(b, rep + geo);
+    for (auto* tr : {off.get(), on.get()}) {
+      torch::manual_seed(21);
+      torch::NoGradGuard ng;
+      for (auto& p : tr->module().parameters()) p.normal_(0.0, 0.1);
+    }
+    // Same weights, same clips (window 0: no crops), eval mode so the codebook does not move.
+    off->module().eval();
+    on->module().eval();
+    auto lo = off->loss({0, 1});
+    auto ln = on->loss({0, 1});
+    double part = -1;
+    for (auto& [k, v] : ln.parts)
+      if (k == "geometry") part = v.item<double>();
+    REQUIRE(part > 0);
+    for (auto& [k, v] : lo.parts) CHECK(k != "geometry");
+    CHECK(ln.loss.item<double>() == Approx(lo.loss.item<double>() + part).epsilon(1e-5));
+    // A reconstruction of random weights is wrong in every bone.
+    CHECK(part > 1e-6);
+  }
+  // Off by default, and then absent from the dump: every tokenizer run keeps its name.
+  auto standard = load_job<TrainJobConfig>("configs/tokenizer/vq_standard.yaml", {});
+  CHECK(dump_config(standard).find("geometry_loss") == std::string::npos);
+  auto with = load_job<TrainJobConfig>("configs/tokenizer/vq_standard.yaml", {"model.geometry_loss.bone_weight=1"});
+  CHECK(dump_config(with).find("geometry_loss") != std::string::npos);
 }
