@@ -13,11 +13,11 @@
 #include <torch/torch.h>
 
 #include "core/config.h"
-#include "models/geometry_loss.h"
 #include "data/features.h"
 #include "data/motion_set.h"
 #include "data/skeleton.h"
 #include "models/conv_motion.h"
+#include "models/geometry_loss.h"
 
 namespace mc {
 

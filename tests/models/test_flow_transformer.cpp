@@ -10,6 +10,7 @@
 #include "models/flow_prior.h"
 #include "models/flow_transformer.h"
 #include "train/trainer.h"
+#include "trainer_test_util.h"
 
 using namespace mc;
 
@@ -146,30 +147,14 @@ TEST_CASE("flow prior: the S config builds and runs one training step", "[flow]"
 }
 
 namespace {
-// A tiny flow prior trainer on random clips of the given lengths (t_max 30).
+// A tiny flow prior trainer on random clips of 12, 30, 17 and 9 frames.
 std::unique_ptr<Trainable> tiny_flow_trainer(TrainJobConfig& job, const std::string& extra, bool trim,
                                              std::shared_ptr<MotionDataset>* data_out = nullptr) {
-  parse_config(config_from_string("model:\n  type: flow_prior\n  depth: 2\n  width: 32\n  heads: 2\n"
-                                  "  text_width: 16\n  text_heads: 2\n  text_ff: 32\n  text_layers: 1\n" +
-                                  extra),
-               job);
-  MotionSet set = test::random_motion_set({12, 30, 17, 9}, {"train", "train", "val", "val"});
-  set.stats = compute_norm_stats(set);
-  set.vocab = TextVocab::build(set).words();
-  auto data = std::make_shared<MotionDataset>(set, "<memory>");
-  if (data_out) *data_out = data;
-  torch::manual_seed(4);
-  TrainContext ctx{data, torch::kCPU, &job, 0, trim};
-  return make_trainable(job.model, ctx);
-}
-// The same non-trivial weights in every trainer (AdaLN-Zero would make the output 0),
-// so arms that differ only in their loss see the same network.
-void same_random_weights(std::initializer_list<Trainable*> trainers) {
-  for (auto* tr : trainers) {
-    torch::manual_seed(21);
-    torch::NoGradGuard ng;
-    for (auto& p : tr->module().parameters()) p.normal_(0.0, 0.1);
-  }
+  return test::trainer_on_random_clips(job,
+                                       "model:\n  type: flow_prior\n  depth: 2\n  width: 32\n  heads: 2\n"
+                                       "  text_width: 16\n  text_heads: 2\n  text_ff: 32\n  text_layers: 1\n" +
+                                           extra,
+                                       {12, 30, 17, 9}, trim, data_out);
 }
 }  // namespace
 
@@ -179,7 +164,7 @@ TEST_CASE("flow prior: batches trimmed to their longest clip, FLOPs count valid 
   std::shared_ptr<MotionDataset> data;
   auto padded = tiny_flow_trainer(a, "", false, &data);
   auto trimmed = tiny_flow_trainer(b, "", true);
-  same_random_weights({padded.get(), trimmed.get()});
+  test::same_random_weights({padded.get(), trimmed.get()});
   // Clips 0 and 2 (12 and 17 frames of 30): the trimmed batch has 17 frames.
   CHECK(data->batch({0, 2}, 0, 1, torch::kCPU, true).joints.size(1) == 17);
   CHECK(data->batch({0, 2}, 0, 1, torch::kCPU, false).joints.size(1) == 30);
@@ -220,7 +205,7 @@ TEST_CASE("flow prior: the smoothness term adds the error's frame-to-frame diffe
   TrainJobConfig a, b;
   auto plain = tiny_flow_trainer(a, "", true);
   auto smooth = tiny_flow_trainer(b, "  smooth_weight: 2.0\n", true);
-  same_random_weights({plain.get(), smooth.get()});
+  test::same_random_weights({plain.get(), smooth.get()});
   torch::manual_seed(9);
   double lp = plain->loss({0, 1}).loss.item<double>();
   torch::manual_seed(9);
@@ -285,7 +270,7 @@ TEST_CASE("flow prior: the geometry loss section is off by default and then abse
   auto geo = tiny_flow_trainer(b, "  geometry_loss:\n    bone_weight: 1.0\n    contact_weight: 1.0\n", true);
   CHECK(dump_config(a).find("geometry_loss") == std::string::npos);
   CHECK(dump_config(b).find("geometry_loss") != std::string::npos);
-  same_random_weights({plain.get(), geo.get()});
+  test::same_random_weights({plain.get(), geo.get()});
   torch::manual_seed(9);
   double lp = plain->loss({0, 1}).loss.item<double>();
   torch::manual_seed(9);

@@ -6,15 +6,14 @@
 #include <cmath>
 #include <sstream>
 
-#include "../data/data_test_util.h"
 #include "cli/jobs.h"
 #include "core/error.h"
-#include "data/normalizer.h"
 #include "data/features.h"
 #include "models/vq_tokenizer.h"
 #include "test_util.h"
 #include "models/motion_dataset.h"
 #include "train/trainer.h"
+#include "trainer_test_util.h"
 
 using namespace mc;
 using namespace mc::test;
@@ -472,17 +471,12 @@ TEST_CASE("invariant vq_tiny trains, reports the oracle control error and loads 
 
 namespace {
 
+// A tiny tokenizer trainer on random clips of 12, 28, 17 and 9 frames (whole clips,
+// padded to 28, a multiple of the stride).
 std::unique_ptr<Trainable> tiny_vq_trainer(TrainJobConfig& job, const std::string& extra) {
-  parse_config(config_from_string("model:\n  type: vq_tokenizer\n  width: 16\n  code_dim: 8\n  codebook_size: 16\n"
-                                  "  res_depth: 1\n" +
-                                  extra),
-               job);
-  MotionSet set = test::random_motion_set({12, 28, 17, 9}, {"train", "train", "val", "val"});
-  set.stats = compute_norm_stats(set);
-  auto data = std::make_shared<MotionDataset>(set, "<memory>");
-  TrainContext ctx{data, torch::kCPU, &job, 0, false};
-  torch::manual_seed(4);  // the same codebook buffer in every trainer
-  return make_trainable(job.model, ctx);
+  return test::trainer_on_random_clips(
+      job, "model:\n  type: vq_tokenizer\n  width: 16\n  code_dim: 8\n  codebook_size: 16\n  res_depth: 1\n" + extra,
+      {12, 28, 17, 9});
 }
 
 }  // namespace
@@ -496,11 +490,7 @@ TEST_CASE("tokenizer: the geometry terms add exactly their part to the loss, in 
     TrainJobConfig a, b;
     auto off = tiny_vq_trainer(a, rep);
     auto on = tiny_vq_trainer(b, rep + geo);
-    for (auto* tr : {off.get(), on.get()}) {
-      torch::manual_seed(21);
-      torch::NoGradGuard ng;
-      for (auto& p : tr->module().parameters()) p.normal_(0.0, 0.1);
-    }
+    test::same_random_weights({off.get(), on.get()});
     // Same weights, same clips (window 0: no crops), eval mode so the codebook does not move.
     off->module().eval();
     on->module().eval();
