@@ -392,7 +392,7 @@ class VqTokenizerTrainer : public Trainable {
   LossOutput loss(const std::vector<int64_t>& idx, const BatchShard& shard) override {
     torch::Tensor x, mask, whole_mask;
     if (model_->invariant()) {
-      std::tie(x, mask, whole_mask) = feature_batch(idx, shard);
+      std::tie(x, mask, whole_mask) = feature_batch(idx, shard, ctx_.window);
     } else {
       MotionBatch b = ctx_.data->batch(idx, ctx_.window, stride_, ctx_.device, false, shard);
       x = b.joints.flatten(2);  // [B, T, J*3]
@@ -458,7 +458,40 @@ class VqTokenizerTrainer : public Trainable {
         lo.parts.emplace_back("geometry", geo.detach());
       }
     }
+    if (cfg_.clip_world_loss.enabled()) {
+      auto cw = clip_world_loss(idx, shard);
+      lo.loss = lo.loss + cfg_.clip_world_loss.weight * cw;
+      lo.parts.emplace_back("clip_world", cw.detach());
+    }
     return lo;
+  }
+
+  // model.clip_world_loss: the MPJPE (m) of the joints integrated over whole clips,
+  // the first `clips` of the batch (the same ones on every data-parallel rank), padded
+  // to the longest of them. The quantiser runs in eval mode for this pass: the
+  // straight-through gradient still reaches the encoder, but the codebook's EMA
+  // statistics and dead-code resets stay the window pass's alone (one step per batch).
+  torch::Tensor clip_world_loss(const std::vector<int64_t>& idx, const BatchShard& shard) {
+    const int64_t n = std::min<int64_t>(cfg_.clip_world_loss.clips, static_cast<int64_t>(idx.size()));
+    const std::vector<int64_t> sub(idx.begin(), idx.begin() + n);
+    auto [x, mask, whole_mask] = feature_batch(sub, shard, 0, true);
+    const bool was_training = model_->quantizer->is_training();
+    model_->quantizer->eval();
+    VqOutput out;
+    try {
+      out = model_->forward(x, mask);
+    } catch (...) {
+      model_->quantizer->train(was_training);
+      throw;
+    }
+    model_->quantizer->train(was_training);
+    const int64_t J = model_->num_joints();
+    auto fm = model_->feature_mean, fs = model_->feature_std;
+    auto wy = recover_world_from_invariant(out.recon * fs + fm, J);
+    auto wx = recover_world_from_invariant(x * fs + fm, J);
+    auto err = ((wy - wx).pow(2).sum(-1) + 1e-12).sqrt();  // [b, T, J]
+    auto mw = mask.unsqueeze(-1).to(x.dtype());
+    return (err * mw).sum() / (whole_mask.to(x.dtype()).sum() * J + 1e-8);
   }
   bool shards_batches() const override { return true; }
 
@@ -588,18 +621,25 @@ class VqTokenizerTrainer : public Trainable {
   // first row holds the real step from the frame before it), normalised, cropped like
   // MotionDataset::batch (same random draws, every clip's), padded to a multiple of
   // the stride: the shard's rows, their mask and the whole batch's mask.
+  // Normalised features of `idx`: random crops of `window` frames (0 = whole clips,
+  // padded to t_max, or with `fit` to the longest of them; no random draw then).
   std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> feature_batch(const std::vector<int64_t>& idx,
-                                                                        const BatchShard& shard) {
+                                                                        const BatchShard& shard, int64_t window,
+                                                                        bool fit = false) {
     const MotionSet& set = ctx_.data->set();
     const int64_t Bw = idx.size(), F = model_->input_dim();
-    int64_t T = ctx_.window > 0 ? ctx_.window : set.t_max;
+    int64_t T = window > 0 ? window : set.t_max;
+    if (window <= 0 && fit) {
+      T = 1;
+      for (int64_t i : idx) T = std::max<int64_t>(T, set.lengths[i]);
+    }
     if (stride_ > 1) T = (T + stride_ - 1) / stride_ * stride_;
     std::vector<int64_t> starts(Bw, 0), takes(Bw);
     auto whole_mask = torch::zeros({Bw, T}, torch::kBool);
     for (int64_t b = 0; b < Bw; ++b) {
       const int64_t len = set.lengths[idx[b]];
       takes[b] = std::min(len, T);
-      if (ctx_.window > 0 && len > T) starts[b] = torch::randint(0, len - T + 1, {1}).item<int64_t>();
+      if (window > 0 && len > T) starts[b] = torch::randint(0, len - T + 1, {1}).item<int64_t>();
       whole_mask[b].narrow(0, 0, takes[b]).fill_(true);
     }
     const BatchRows rows = shard.rows(Bw);

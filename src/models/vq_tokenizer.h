@@ -187,6 +187,7 @@ struct VqRepresentationConfig : Config {
       "relative to each other channel's 1 (their errors integrate into the trajectory)",
       at_least(0.0));
   }
+  bool invariant_type() const { return type == "invariant"; }
   bool omitted_from_dump() const override {
     return type == "absolute_joints" && layout == "inv67" && facing_smooth_sigma == 20.0 && world_weight == 0.0 &&
            root_weight == 1.0;
@@ -196,6 +197,28 @@ struct VqRepresentationConfig : Config {
       return "layout, facing_smooth_sigma, world_weight and root_weight apply to representation.type invariant only";
     return "";
   }
+};
+
+// `model.clip_world_loss` (issue 15): the invariant tokenizer's world loss on whole
+// clips beside the window's losses. The window's world loss sees only the drift of
+// the integrated root inside a 64-frame crop, while the decode that AnchorRoute's
+// anchors and the oracle control error read integrates over the whole clip (up to
+// 196 frames); training on whole clips instead halved that drift but cost the poses
+// (docs/choices.md, "Whole clips instead of 64-frame windows"). So each step also
+// decodes `clips` whole clips of the batch (padded to the longest of them, with the
+// quantiser's codebook held: no EMA step) and adds `weight` x their world MPJPE (m).
+// Off by default and then absent from the dump (every tokenizer run keeps its name).
+struct ClipWorldLossConfig : Config {
+  double weight = 0.0;
+  int clips = 16;
+  void visit(FieldVisitor& v) override {
+    v("weight", weight,
+      "invariant: weight of the MPJPE (m) of the joints integrated over whole clips (0 = off)", in_range(0.0, 1e6));
+    v("clips", clips, "whole clips per step: the first ones of the batch (fewer if the batch is smaller)",
+      in_range(1, 4096));
+  }
+  bool enabled() const { return weight > 0; }
+  bool omitted_from_dump() const override { return !enabled() && clips == 16; }
 };
 
 // `model:` section of a tokenizer run (model.type = vq_tokenizer).
@@ -213,6 +236,7 @@ struct VqTokenizerConfig : Config {
   double velocity_weight = 0.5;
   VqRepresentationConfig representation;
   GeometryLossConfig geometry_loss;  // off by default (and then absent from the dump)
+  ClipWorldLossConfig clip_world_loss;  // off by default (and then absent from the dump)
   void visit(FieldVisitor& v) override {
     v("width", width, "conv channels", at_least(8));
     v("code_dim", code_dim, "codebook vector size D", at_least(1));
@@ -231,6 +255,13 @@ struct VqTokenizerConfig : Config {
     v("geometry_loss", geometry_loss,
       "bone-vector and toe-slip terms on the reconstructed world joints (issue 13; off by default): for the "
       "invariant representation on the joints integrated over the training window");
+    v("clip_world_loss", clip_world_loss,
+      "invariant: the world MPJPE on whole clips beside the window's losses (issue 15; off by default)");
+  }
+  std::string validate() const override {
+    if (clip_world_loss.enabled() && !representation.invariant_type())
+      return "clip_world_loss applies to representation.type invariant only (absolute joints do not drift)";
+    return "";
   }
 };
 

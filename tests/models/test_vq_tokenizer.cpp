@@ -506,8 +506,46 @@ TEST_CASE("tokenizer: the geometry terms add exactly their part to the loss, in 
     CHECK(part > 1e-6);
   }
   // Off by default, and then absent from the dump: every tokenizer run keeps its name.
-  auto standard = load_job<TrainJobConfig>("configs/tokenizer/vq_standard.yaml", {});
-  CHECK(dump_config(standard).find("geometry_loss") == std::string::npos);
-  auto with = load_job<TrainJobConfig>("configs/tokenizer/vq_standard.yaml", {"model.geometry_loss.bone_weight=1"});
+  auto small = load_job<TrainJobConfig>("configs/tokenizer/vq_small.yaml", {});
+  CHECK(dump_config(small).find("geometry_loss") == std::string::npos);
+  auto with = load_job<TrainJobConfig>("configs/tokenizer/vq_small.yaml", {"model.geometry_loss.bone_weight=1"});
   CHECK(dump_config(with).find("geometry_loss") != std::string::npos);
+}
+
+TEST_CASE("tokenizer: the whole-clip world loss adds exactly its part and leaves the codebook to the window pass",
+          "[tokenizer][invariant]") {
+  // Train mode, so the quantiser takes its EMA step in the window pass.
+  const std::string rep = "  representation:\n    type: invariant\n    world_weight: 0.5\n";
+  const std::string clip = "  clip_world_loss:\n    weight: 2.0\n    clips: 3\n";
+  TrainJobConfig a, b;
+  auto off = tiny_vq_trainer(a, rep);
+  auto on = tiny_vq_trainer(b, rep + clip);
+  test::same_random_weights({off.get(), on.get()});
+  off->module().train();
+  on->module().train();
+  torch::manual_seed(5);
+  auto lo = off->loss({1, 0, 2, 3});
+  torch::manual_seed(5);
+  auto ln = on->loss({1, 0, 2, 3});
+  double part = -1;
+  for (auto& [k, v] : ln.parts)
+    if (k == "clip_world") part = v.item<double>();
+  REQUIRE(part > 0);
+  for (auto& [k, v] : lo.parts) CHECK(k != "clip_world");
+  CHECK(ln.loss.item<double>() == Approx(lo.loss.item<double>() + 2.0 * part).epsilon(1e-5));
+  // The whole-clip pass took no EMA step: both codebooks moved by the window pass only.
+  auto* qa = dynamic_cast<VqTokenizerImpl*>(&off->module());
+  auto* qb = dynamic_cast<VqTokenizerImpl*>(&on->module());
+  REQUIRE(qa != nullptr);
+  REQUIRE(qb != nullptr);
+  CHECK(torch::equal(qa->quantizer->codebook, qb->quantizer->codebook));
+  CHECK(torch::equal(qa->quantizer->cluster_size, qb->quantizer->cluster_size));
+  CHECK(qb->quantizer->is_training());
+  // Off by default (absent from the dump); absolute joints refuse it, naming the key.
+  auto small = load_job<TrainJobConfig>("configs/tokenizer/vq_small.yaml", {});
+  CHECK(dump_config(small).find("clip_world_loss") == std::string::npos);
+  auto with = load_job<TrainJobConfig>("configs/tokenizer/vq_small.yaml", {"model.clip_world_loss.weight=1"});
+  CHECK(dump_config(with).find("clip_world_loss") != std::string::npos);
+  CHECK_THROWS_WITH(load_job<TrainJobConfig>("configs/tokenizer/vq_tiny.yaml", {"model.clip_world_loss.weight=1"}),
+                    Catch::Contains("clip_world_loss"));
 }
