@@ -442,11 +442,7 @@ class VqTokenizerTrainer : public Trainable {
         wx = model_->denormalize(x.view({x.size(0), x.size(1), J, 3}));
       }
       if (world_loss) {
-        // The mean per-joint Euclidean error in metres (MPJPE; its gradient does not
-        // fade as the drift gets small, as a squared one would).
-        auto mw = mask.unsqueeze(-1).to(x.dtype());  // [B, T, 1]
-        auto err = ((wy - wx).pow(2).sum(-1) + 1e-12).sqrt();  // [B, T, J]
-        auto world = (err * mw).sum() / (whole_mask.unsqueeze(-1).to(x.dtype()).sum() * J + 1e-8);
+        auto world = world_mpjpe(wy, wx, mask, whole_mask);
         lo.loss = lo.loss + cfg_.representation.world_weight * world;
         lo.parts.emplace_back("world", world.detach());
       }
@@ -487,11 +483,19 @@ class VqTokenizerTrainer : public Trainable {
     model_->quantizer->train(was_training);
     const int64_t J = model_->num_joints();
     auto fm = model_->feature_mean, fs = model_->feature_std;
-    auto wy = recover_world_from_invariant(out.recon * fs + fm, J);
-    auto wx = recover_world_from_invariant(x * fs + fm, J);
+    return world_mpjpe(recover_world_from_invariant(out.recon * fs + fm, J),
+                       recover_world_from_invariant(x * fs + fm, J), mask, whole_mask);
+  }
+
+  // The mean per-joint Euclidean error in metres (MPJPE; its gradient does not fade
+  // as the drift gets small, as a squared one would) of wy against wx [b, T, J, 3]
+  // over this shard's valid frames `mask` [b, T], divided by the whole batch's
+  // (`whole_mask`), so data-parallel shares add up.
+  static torch::Tensor world_mpjpe(const torch::Tensor& wy, const torch::Tensor& wx, const torch::Tensor& mask,
+                                   const torch::Tensor& whole_mask) {
     auto err = ((wy - wx).pow(2).sum(-1) + 1e-12).sqrt();  // [b, T, J]
-    auto mw = mask.unsqueeze(-1).to(x.dtype());
-    return (err * mw).sum() / (whole_mask.to(x.dtype()).sum() * J + 1e-8);
+    auto mw = mask.unsqueeze(-1).to(wy.dtype());
+    return (err * mw).sum() / (whole_mask.to(wy.dtype()).sum() * wy.size(2) + 1e-8);
   }
   bool shards_batches() const override { return true; }
 
@@ -618,11 +622,11 @@ class VqTokenizerTrainer : public Trainable {
   }
 
   // Invariant training batch: each clip's features over the whole clip (so a window's
-  // first row holds the real step from the frame before it), normalised, cropped like
-  // MotionDataset::batch (same random draws, every clip's), padded to a multiple of
-  // the stride: the shard's rows, their mask and the whole batch's mask.
-  // Normalised features of `idx`: random crops of `window` frames (0 = whole clips,
-  // padded to t_max, or with `fit` to the longest of them; no random draw then).
+  // first row holds the real step from the frame before it), normalised, cropped to
+  // `window` frames like MotionDataset::batch (same random draws, every clip's; window
+  // 0 = whole clips, padded to t_max, or with `fit` to the longest of `idx`, with no
+  // draw), padded to a multiple of the stride: the shard's rows, their mask and the
+  // whole batch's mask.
   std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> feature_batch(const std::vector<int64_t>& idx,
                                                                         const BatchShard& shard, int64_t window,
                                                                         bool fit = false) {

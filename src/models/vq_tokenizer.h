@@ -187,7 +187,6 @@ struct VqRepresentationConfig : Config {
       "relative to each other channel's 1 (their errors integrate into the trajectory)",
       at_least(0.0));
   }
-  bool invariant_type() const { return type == "invariant"; }
   bool omitted_from_dump() const override {
     return type == "absolute_joints" && layout == "inv67" && facing_smooth_sigma == 20.0 && world_weight == 0.0 &&
            root_weight == 1.0;
@@ -259,7 +258,7 @@ struct VqTokenizerConfig : Config {
       "invariant: the world MPJPE on whole clips beside the window's losses (issue 15; off by default)");
   }
   std::string validate() const override {
-    if (clip_world_loss.enabled() && !representation.invariant_type())
+    if (clip_world_loss.enabled() && representation.type != "invariant")
       return "clip_world_loss applies to representation.type invariant only (absolute joints do not drift)";
     return "";
   }
