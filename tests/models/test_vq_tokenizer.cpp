@@ -510,6 +510,10 @@ TEST_CASE("tokenizer: the geometry terms add exactly their part to the loss, in 
   CHECK(dump_config(small).find("geometry_loss") == std::string::npos);
   auto with = load_job<TrainJobConfig>("configs/tokenizer/vq_small.yaml", {"model.geometry_loss.bone_weight=1"});
   CHECK(dump_config(with).find("geometry_loss") != std::string::npos);
+  // The standard tokenizer adopted bone 1000 / contact 3000 (docs/choices.md).
+  auto standard = load_job<TrainJobConfig>("configs/tokenizer/vq_standard.yaml", {});
+  CHECK(standard.model.as<VqTokenizerConfig>().geometry_loss.bone_weight == 1000.0);
+  CHECK(standard.model.as<VqTokenizerConfig>().geometry_loss.contact_weight == 3000.0);
 }
 
 TEST_CASE("tokenizer: the whole-clip world loss adds exactly its part and leaves the codebook to the window pass",
