@@ -28,6 +28,7 @@
 #include "experiments/experiment.h"
 #include "experiments/row_evaluator.h"
 #include "experiments/row_record.h"
+#include "models/anchor_adapters.h"
 #include "samplers/motion_generator.h"
 #include "train/pretrained.h"
 #include "train/train_job.h"
@@ -165,6 +166,35 @@ ResolvedRow resolve_row(const ProfileConfig& profile, const TableSpec& table, co
   return r;
 }
 
+// Changes to what a generator computes from the same config and weights, keyed only for
+// the rows they touch (left out of the dump when off, so other rows keep their caches).
+struct RowRevisions : Config {
+  // 2026-11-25: under CFG the null-text pass of an adapter whose hooks read the text (dual
+  // context, the ControlNet adapter) gets hooks computed on the null text, not the
+  // caption's. Set for the rows whose adapter reads the text.
+  bool adapter_null_text_hooks = false;
+  void visit(FieldVisitor& v) override {
+    v("adapter_null_text_hooks", adapter_null_text_hooks,
+      "anchorroute rows with an adapter: the CFG null-text pass's hooks are computed on the null text");
+  }
+  bool omitted_from_dump() const override { return !adapter_null_text_hooks; }
+};
+
+// Reads the config of the adapter run the row resolved to (the profile's swaps applied).
+static RowRevisions row_revisions(const Component& generator, const RowComponents& components) {
+  RowRevisions r;
+  if (generator.type != "anchorroute") return r;
+  for (const auto& d : components.all) {
+    if (d.what != "adapter") continue;
+    const auto job = load_job<TrainJobConfig>((fs::path(d.run) / "config.yaml").string(), {});
+    if (job.model.type != "anchor_adapter") continue;
+    const auto& a = job.model.as<AnchorAdapterConfig>();
+    r.adapter_null_text_hooks =
+        a.adapter == "controlnet" || a.dual_context || (a.adapter == "anchorkv" && a.anchorkv.text_slots);
+  }
+  return r;
+}
+
 // The key that decides whether a finished row run can be reused.
 struct RowRunKey : Config {
   std::string generator, protocol, data, evaluator, split;
@@ -173,6 +203,7 @@ struct RowRunKey : Config {
   int num_samples = 0, repeats = 0, mm_texts = 0, mm_generations = 0;
   int64_t seed = 0;
   EvalProtocol eval;
+  RowRevisions revisions;
   // What a finished run holds: 2 = samples.h5 with per-sample records (paired tests),
   // group-mean headline values, both foot-skating conventions, KID and the GT floor;
   // 3 = also floor penetration, inequality violation and direction errors (issue 20).
@@ -193,6 +224,7 @@ struct RowRunKey : Config {
     v("mm_generations", mm_generations, "multimodality generations per text");
     v("seed", seed, "base seed");
     v("eval", eval, "metric protocol");
+    v("revisions", revisions, "generator changes that void the rows they touch");
   }
 };
 
@@ -482,6 +514,11 @@ RowResult run_row(const ProfileFile& pf, const TableSpec& table, const RowConfig
   key.mm_generations = table.table.multimodality_texts > 0 ? table.table.multimodality_generations : 0;
   key.seed = profile.seed;
   key.eval = pf.protocol;
+  // The trained components the row uses as they are now (what is missing or stale is
+  // trained first), each with its weights' SHA-1: the directory's name covers the
+  // row's config, not weights retrained in place.
+  const RowComponents components = resolve_row_components(rr.generator);
+  key.revisions = row_revisions(rr.generator, components);
   RunConfig rc;
   rc.root = profile.runs_root;
   rc.experiment = sanitize_name(profile.name) + "/rows";
@@ -492,10 +529,6 @@ RowResult run_row(const ProfileFile& pf, const TableSpec& table, const RowConfig
   const std::string run_name = sanitize_name(row.id) + "-" + config_hash(key);
   RunDir run = RunDir::open(rc, yaml, {}, run_name);
   result.run_dir = run.path().string();
-  // The trained components the row uses as they are now (what is missing or stale is
-  // trained first), each with its weights' SHA-1: the directory's name covers the
-  // row's config, not weights retrained in place.
-  const RowComponents components = resolve_row_components(rr.generator);
   const ResolvedDependency evaluator = evaluator_component(ev.evaluator_run(), profile.evaluator);
   const std::string record_note =
       "a table row: the trained components and the evaluator it was computed with; a replay recomputes it when "

@@ -119,7 +119,7 @@ void bench_anchorroute(const AnchorrouteBenchOptions& o, std::ostream& out) {
     for (int r = 0; r <= reps; ++r) {
       auto t0 = Clock::now();
       AdapterInputs in{ids, t, text, valid, feats};
-      auto h = a.module->hooks(in);
+      auto h = a.module->guided_hooks(in, a.prior->null_texts(batch, text.memory.size(1)));
       h.guidance = arc->guidance.hooks();
       a.prior->guided_logits(ids, t, text, valid, sc.cfg_scale, &h);
       if (r > 0) net_call += seconds_since(t0) / reps;  // the first call warms up

@@ -38,6 +38,10 @@ void AnchorKvMemoryConfig::visit(FieldVisitor& v) {
     "token-aligned memory: token n attends to memory slots |n - m| <= window only (-1 = every slot, eq. (15) "
     "as written)",
     at_least(-1));
+  v("text_slots", text_slots,
+    "ours: dual context as a text branch apart from the anchor memory: the pooled sentence vector (through a "
+    "condition MLP) and the word memory appended as extra key/value slots beside H^s (values zero-init; not "
+    "windowed). Use with dual_context: false to keep H^s anchors-only");
 }
 
 void AdapterTrainingConfig::visit(FieldVisitor& v) {
@@ -241,6 +245,16 @@ torch::Tensor ScaffoldEncoderImpl::forward(const torch::Tensor& features, const 
   return h;
 }
 
+TokenTransformerHooks AnchorAdapterModule::guided_hooks(const AdapterInputs& in, const TextContext& null_text) {
+  auto h = hooks(in);
+  if (reads_text()) {
+    AdapterInputs n = in;
+    n.text = null_text;
+    h.null_text = std::make_shared<TokenTransformerHooks>(hooks(n));
+  }
+  return h;
+}
+
 // ---------------------------------------------------------------- AnchorKV
 
 AnchorKVAdapterImpl::AnchorKVAdapterImpl(const AnchorAdapterConfig& c, const TokenTransformerOptions& o,
@@ -256,6 +270,15 @@ AnchorKVAdapterImpl::AnchorKVAdapterImpl(const AnchorAdapterConfig& c, const Tok
     // normaliser of eq. (15) it still takes attention mass; with `own` it is the identity).
     UV.push_back(register_parameter(fmt::format("UV{}", l), torch::zeros({r, d})));
   }
+  if (memory.text_slots) {
+    const int64_t td = o.text_dim;
+    text_cond = register_module("text_cond", nn::Sequential(nn::Linear(td, td), nn::SiLU(), nn::Linear(td, td)));
+    for (int64_t l = 0; l < o.depth; ++l) {
+      PT.push_back(register_parameter(fmt::format("PT{}", l), torch::randn({td, r}) / std::sqrt(double(td))));
+      UKT.push_back(register_parameter(fmt::format("UKT{}", l), torch::randn({r, d}) / std::sqrt(double(r))));
+      UVT.push_back(register_parameter(fmt::format("UVT{}", l), torch::zeros({r, d})));
+    }
+  }
 }
 
 TokenTransformerHooks AnchorKVAdapterImpl::hooks(const AdapterInputs& in) {
@@ -267,6 +290,16 @@ TokenTransformerHooks AnchorKVAdapterImpl::hooks(const AdapterInputs& in) {
     auto d = (pos.unsqueeze(1) - pos.unsqueeze(0)).abs();
     bias = torch::zeros({L, L}, Hs.options()).masked_fill(d > memory.window, -std::numeric_limits<float>::infinity());
   }
+  // Text slots: [pooled through the condition MLP; word memory], not token-aligned (no
+  // RoPE, outside the window).
+  torch::Tensor text_mem, text_valid;
+  if (memory.text_slots) {
+    text_mem = torch::cat({text_cond->forward(in.text.pooled).unsqueeze(1), in.text.memory}, 1);
+    text_valid = torch::cat({torch::ones({B, 1}, in.text.memory_valid.options().dtype(torch::kBool)),
+                             in.text.memory_valid.to(torch::kBool)},
+                            1);
+    if (bias.defined()) bias = torch::cat({bias, torch::zeros({L, text_mem.size(1)}, bias.options())}, 1);
+  }
   TokenTransformerHooks h;
   for (size_t l = 0; l < P.size(); ++l) {
     auto low = torch::matmul(Hs, P[l]);                         // H^s P_l
@@ -274,7 +307,13 @@ TokenTransformerHooks AnchorKVAdapterImpl::hooks(const AdapterInputs& in) {
     // RoPE at the memory slot's token index: the backbone's queries carry RoPE, so
     // <q_n, K^s_m> depends on n - m.
     k = apply_rope(k.view({B, L, heads, head_dim}).transpose(1, 2), pos, rope_base).transpose(1, 2).reshape({B, L, -1});
-    LayerKV kv{k, v, in.valid};  // eq. (15)
+    LayerKV kv{k, v, in.valid.to(torch::kBool)};  // eq. (15)
+    if (memory.text_slots) {
+      auto tl = torch::matmul(text_mem, PT[l]);
+      kv.k = torch::cat({kv.k, torch::matmul(tl, UKT[l])}, 1);
+      kv.v = torch::cat({kv.v, torch::matmul(tl, UVT[l])}, 1);
+      kv.mask = torch::cat({kv.mask, text_valid}, 1);
+    }
     kv.bias = bias;
     kv.own_normaliser = memory.normaliser == "own";
     h.extra_kv.push_back(kv);

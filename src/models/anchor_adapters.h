@@ -24,9 +24,13 @@ class TokenPrior;
 struct AnchorKvMemoryConfig : Config {
   std::string normaliser = "joint";  // joint: eq. (15) | own: the block's own normaliser (identity at init)
   int window = -1;                   // -1: every slot (eq. (15)); w >= 0: token n sees slots |n - m| <= w
+  // Text slots beside H^s (ours: dual context read as a text branch kept apart from the
+  // anchor memory): a condition MLP of the pooled sentence vector (one slot) and the
+  // sequence-level text memory (one slot per word), projected like eq. (14), values zero-init.
+  bool text_slots = false;
   void visit(FieldVisitor& v) override;
   bool paper() const { return normaliser == "joint" && window < 0; }
-  bool omitted_from_dump() const override { return paper(); }
+  bool omitted_from_dump() const override { return paper() && !text_slots; }
 };
 
 // Where controlled training spends its signal, and an audit switch (issue 15). Defaults:
@@ -132,6 +136,13 @@ TORCH_MODULE(ScaffoldEncoder);
 // text) into the backbone's hooks. Parameters of the backbone are never registered.
 struct AnchorAdapterModule : torch::nn::Module {
   virtual TokenTransformerHooks hooks(const AdapterInputs& in) = 0;
+  // Whether the hooks depend on in.text (dual context; the ControlNet copy's blocks always).
+  virtual bool reads_text() const { return scaffold && scaffold->dual_context; }
+  // The hooks of one CFG sampling call: when they read the text, the null-text pass gets
+  // hooks computed from `null_text` (TokenTransformerHooks::null_text), which is what
+  // training's dropped-text draws (cond_drop) showed the adapter; otherwise one set
+  // serves every pass.
+  TokenTransformerHooks guided_hooks(const AdapterInputs& in, const TextContext& null_text);
   ScaffoldEncoder scaffold{nullptr};
 };
 
@@ -145,7 +156,10 @@ struct AnchorKVAdapterImpl : AnchorAdapterModule {
   AnchorKVAdapterImpl(const AnchorAdapterConfig& c, const TokenTransformerOptions& backbone, int64_t stride,
                       int64_t feature_width);
   TokenTransformerHooks hooks(const AdapterInputs& in) override;
+  bool reads_text() const override { return AnchorAdapterModule::reads_text() || memory.text_slots; }
   std::vector<torch::Tensor> P, UK, UV;  // per block [d_s, r], [r, d], [r, d]
+  std::vector<torch::Tensor> PT, UKT, UVT;  // text slots (memory.text_slots): [text_dim, r], [r, d], [r, d]
+  torch::nn::Sequential text_cond{nullptr};  // condition MLP of the pooled sentence vector
   int64_t heads, head_dim;
   double rope_base;
   AnchorKvMemoryConfig memory;
@@ -175,6 +189,7 @@ struct ControlNetAdapterImpl : AnchorAdapterModule {
   ControlNetAdapterImpl(const AnchorAdapterConfig& c, TokenTransformer backbone, int64_t stride,
                         int64_t feature_width);
   TokenTransformerHooks hooks(const AdapterInputs& in) override;
+  bool reads_text() const override { return true; }  // its block copies see the call's text
   TokenTransformer backbone{nullptr};  // not registered: frozen
   torch::nn::ModuleList blocks{nullptr}, zero_out{nullptr};
   torch::nn::Linear zero_in{nullptr};

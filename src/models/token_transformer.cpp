@@ -256,29 +256,50 @@ torch::Tensor guided_token_logits(TokenTransformerImpl& net, const torch::Tensor
   };
   TokenTransformerHooks hp;
   if (hooks) {
-    for (auto& kv : hooks->extra_kv) {
+    // Pass p's hooks: the null-text pass takes hooks->null_text when the adapter's hooks
+    // depend on the text, so it sees what training's dropped-text draws saw.
+    const TokenTransformerHooks& nh = hooks->null_text ? *hooks->null_text : *hooks;
+    if (nh.extra_kv.size() != hooks->extra_kv.size() || nh.block_residuals.size() != hooks->block_residuals.size())
+      fail("token transformer: the null-text hooks have {} key/value entries and {} residuals, the text hooks {} and {}",
+           nh.extra_kv.size(), nh.block_residuals.size(), hooks->extra_kv.size(), hooks->block_residuals.size());
+    auto of_pass = [&](int64_t p) -> const TokenTransformerHooks& { return p == 1 ? nh : *hooks; };
+    for (size_t l = 0; l < hooks->extra_kv.size(); ++l) {
+      const LayerKV& kv = hooks->extra_kv[l];
       if (!kv.defined()) {
         hp.extra_kv.push_back(kv);
         continue;
       }
-      const int64_t M = kv.k.size(1);
-      auto m = kv.mask.defined() ? kv.mask.to(dev, torch::kBool)
-                                 : torch::ones({B, M}, torch::TensorOptions().dtype(torch::kBool).device(dev));
-      std::vector<torch::Tensor> masks;
-      for (bool o : on) masks.push_back(o ? m : torch::zeros_like(m));
+      std::vector<torch::Tensor> ks, vs, masks;
+      for (int64_t p = 0; p < P; ++p) {
+        const LayerKV& src = of_pass(p).extra_kv[l];
+        if (!src.defined() || src.k.sizes() != kv.k.sizes())
+          fail("token transformer: block {}'s null-text key/value memory does not match the text one's shape", l);
+        const int64_t M = src.k.size(1);
+        auto m = src.mask.defined() ? src.mask.to(dev, torch::kBool)
+                                    : torch::ones({B, M}, torch::TensorOptions().dtype(torch::kBool).device(dev));
+        ks.push_back(src.k);
+        vs.push_back(src.v);
+        masks.push_back(on[p] ? m : torch::zeros_like(m));
+      }
       LayerKV r = kv;
-      r.k = rep(kv.k);
-      r.v = rep(kv.v);
+      r.k = torch::cat(ks);
+      r.v = torch::cat(vs);
       r.mask = torch::cat(masks);
       hp.extra_kv.push_back(r);  // bias has no batch dimension: shared
     }
-    for (auto& res : hooks->block_residuals) {
+    for (size_t l = 0; l < hooks->block_residuals.size(); ++l) {
+      const auto& res = hooks->block_residuals[l];
       if (!res.defined()) {
         hp.block_residuals.push_back(res);
         continue;
       }
       std::vector<torch::Tensor> parts;
-      for (bool o : on) parts.push_back(o ? res : torch::zeros_like(res));
+      for (int64_t p = 0; p < P; ++p) {
+        const auto& src = of_pass(p).block_residuals[l];
+        if (!src.defined() || src.sizes() != res.sizes())
+          fail("token transformer: block {}'s null-text residual does not match the text one's shape", l);
+        parts.push_back(on[p] ? src : torch::zeros_like(res));
+      }
       hp.block_residuals.push_back(torch::cat(parts));
     }
   }

@@ -4,6 +4,7 @@
 #pragma once
 #include <torch/torch.h>
 
+#include <memory>
 #include <vector>
 
 #include "models/flow_transformer.h"
@@ -67,6 +68,10 @@ struct TokenTransformerHooks {
   std::vector<torch::Tensor> block_residuals;  // [B, L, width] added to block l's output (ControlNet)
   bool collect_hidden = false;                 // fill TokenTransformerOutput::hidden
   HookGuidance guidance;                       // read by guided_token_logits only
+  // The hooks of the null-text pass, when they depend on the text (an adapter with dual
+  // context reads it): guided_token_logits gives that pass these instead, so it sees what
+  // training's dropped-text draws saw. Null = the same hooks in every pass.
+  std::shared_ptr<const TokenTransformerHooks> null_text;
 };
 
 

@@ -87,7 +87,8 @@ class AnchorRouteGenerator : public MotionGenerator {
                        const torch::Tensor& valid) {
         const int64_t B = ids.size(0), L = ids.size(1);
         AdapterInputs in{ids, t, text, valid, feats.narrow(0, start, B).narrow(1, 0, L * s).to(dev)};
-        auto h = adapter_->hooks(in);
+        // The CFG null-text pass gets hooks computed on the null text when they read it.
+        auto h = adapter_->guided_hooks(in, prior_->null_texts(B, text.memory.size(1)));
         h.guidance = guidance_.hooks();
         return h;
       };

@@ -302,6 +302,13 @@ AnchorAdapterConfig path_config() {
   return c;
 }
 
+AnchorAdapterConfig text_slots_config() {
+  auto c = aligned_config(1);
+  c.dual_context = false;
+  c.anchorkv.text_slots = true;
+  return c;
+}
+
 double max_abs_diff(const torch::Tensor& a, const torch::Tensor& b) { return (a - b).abs().max().item<double>(); }
 
 // Randomises every trainable weight so an adapter's effect is visible.
@@ -323,6 +330,7 @@ TEST_CASE("identity at initialisation: untrained adapters leave the frozen prior
       {"anchorkv own, window 0", aligned_config(0)},
       {"anchorkv own, window 1", aligned_config(1)},
       {"anchorkv own, window 1, path-frame features", path_config()},
+      {"anchorkv own, window 1, text slots, no dual context", text_slots_config()},
       {"cross_attention", adapter_config("cross_attention")},
       {"controlnet", adapter_config("controlnet")}};
   for (auto& [name, c] : cases) {
@@ -453,4 +461,53 @@ TEST_CASE("anchor guidance: CFG passes with and without hooks, and the anchor we
   CHECK((p4 > p2).all().item<bool>());
   auto fav_u = (luA - lu0).argmax(-1, true);
   CHECK((logp(guided(false, 1.0), fav_u) > logp(guided(true, 1.0), fav_u)).all().item<bool>());
+}
+
+TEST_CASE("CFG: an adapter that reads the text gives the null-text pass hooks computed on the null text",
+          "[anchorkv]") {
+  // Training drops the caption for the backbone and the adapter together (cond_drop), so the
+  // null-text pass must not see a memory (or ControlNet copy) computed from the caption.
+  auto o = backbone_options();
+  auto bb = frozen_backbone(o, 13);
+  auto no_dual = adapter_config("anchorkv");
+  no_dual.dual_context = false;
+  std::vector<std::pair<std::string, AnchorAdapterConfig>> cases = {
+      {"anchorkv, dual context", adapter_config("anchorkv")},
+      {"controlnet", adapter_config("controlnet")},
+      {"anchorkv, text slots", text_slots_config()},
+      {"anchorkv, no dual context", no_dual}};
+  for (auto& [name, c] : cases) {
+    INFO(name);
+    auto a = make_anchor_adapter(c, bb, 4);
+    randomise(*a, 14);
+    a->eval();
+    torch::NoGradGuard ng;
+    auto x = make_inputs(c, o, 3, 7, 4);
+    torch::manual_seed(15);
+    auto null = random_text(3, x.in.text.memory.size(1), o.text_dim);
+    const bool reads = name != "anchorkv, no dual context";
+    CHECK(a->reads_text() == reads);
+    auto h = a->guided_hooks(x.in, null);
+    CHECK((h.null_text != nullptr) == reads);
+    auto valid = x.in.valid.unsqueeze(-1).expand({-1, -1, o.num_codes});
+    auto on_valid = [&](const torch::Tensor& l) { return l.masked_select(valid); };
+    // cfg 0 = the null-text pass alone; cfg 1 = the text pass alone.
+    auto uncond = guided_token_logits(*bb, x.in.ids, x.in.t, x.in.text, null, x.in.valid, 0.0, &h);
+    auto cond = guided_token_logits(*bb, x.in.ids, x.in.t, x.in.text, null, x.in.valid, 1.0, &h);
+    AdapterInputs n = x.in;
+    n.text = null;
+    auto hn = a->hooks(n);
+    auto hc = a->hooks(x.in);
+    auto want_uncond = bb->forward(x.in.ids, x.in.t, null, x.in.valid, &hn).logits;
+    auto want_cond = bb->forward(x.in.ids, x.in.t, x.in.text, x.in.valid, &hc).logits;
+    CHECK(max_abs_diff(on_valid(uncond), on_valid(want_uncond)) < 1e-4);
+    CHECK(max_abs_diff(on_valid(cond), on_valid(want_cond)) < 1e-4);
+    // The caption's hooks in the null pass (what sampling did before) are another thing
+    // for a text-reading adapter, and the same for one that ignores the text.
+    auto stale = bb->forward(x.in.ids, x.in.t, null, x.in.valid, &hc).logits;
+    if (reads)
+      CHECK(max_abs_diff(on_valid(stale), on_valid(want_uncond)) > 1e-3);
+    else
+      CHECK(max_abs_diff(on_valid(stale), on_valid(want_uncond)) < 1e-5);
+  }
 }
