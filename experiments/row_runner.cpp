@@ -190,7 +190,7 @@ static RowRevisions row_revisions(const Component& generator, const RowComponent
     if (job.model.type != "anchor_adapter") continue;
     const auto& a = job.model.as<AnchorAdapterConfig>();
     r.adapter_null_text_hooks =
-        a.adapter == "controlnet" || a.dual_context || (a.adapter == "anchorkv" && a.anchorkv.text_slots);
+        a.adapter == "controlnet" || a.dual_context || (a.adapter == "anchorkv" && a.anchorkv.text_slots.enabled);
   }
   return r;
 }

@@ -38,7 +38,11 @@ void AnchorKvMemoryConfig::visit(FieldVisitor& v) {
     "token-aligned memory: token n attends to memory slots |n - m| <= window only (-1 = every slot, eq. (15) "
     "as written)",
     at_least(-1));
-  v("text_slots", text_slots,
+  v("text_slots", text_slots, "ours: dual context as a text branch beside H^s (see text_slots.enabled)");
+}
+
+void AnchorKvTextSlotsConfig::visit(FieldVisitor& v) {
+  v("enabled", enabled,
     "ours: dual context as a text branch apart from the anchor memory: the pooled sentence vector (through a "
     "condition MLP) and the word memory appended as extra key/value slots beside H^s (values zero-init; not "
     "windowed). Use with dual_context: false to keep H^s anchors-only");
@@ -270,7 +274,7 @@ AnchorKVAdapterImpl::AnchorKVAdapterImpl(const AnchorAdapterConfig& c, const Tok
     // normaliser of eq. (15) it still takes attention mass; with `own` it is the identity).
     UV.push_back(register_parameter(fmt::format("UV{}", l), torch::zeros({r, d})));
   }
-  if (memory.text_slots) {
+  if (memory.text_slots.enabled) {
     const int64_t td = o.text_dim;
     text_cond = register_module("text_cond", nn::Sequential(nn::Linear(td, td), nn::SiLU(), nn::Linear(td, td)));
     for (int64_t l = 0; l < o.depth; ++l) {
@@ -293,7 +297,7 @@ TokenTransformerHooks AnchorKVAdapterImpl::hooks(const AdapterInputs& in) {
   // Text slots: [pooled through the condition MLP; word memory], not token-aligned (no
   // RoPE, outside the window).
   torch::Tensor text_mem, text_valid;
-  if (memory.text_slots) {
+  if (memory.text_slots.enabled) {
     text_mem = torch::cat({text_cond->forward(in.text.pooled).unsqueeze(1), in.text.memory}, 1);
     text_valid = torch::cat({torch::ones({B, 1}, in.text.memory_valid.options().dtype(torch::kBool)),
                              in.text.memory_valid.to(torch::kBool)},
@@ -308,7 +312,7 @@ TokenTransformerHooks AnchorKVAdapterImpl::hooks(const AdapterInputs& in) {
     // <q_n, K^s_m> depends on n - m.
     k = apply_rope(k.view({B, L, heads, head_dim}).transpose(1, 2), pos, rope_base).transpose(1, 2).reshape({B, L, -1});
     LayerKV kv{k, v, in.valid.to(torch::kBool)};  // eq. (15)
-    if (memory.text_slots) {
+    if (memory.text_slots.enabled) {
       auto tl = torch::matmul(text_mem, PT[l]);
       kv.k = torch::cat({kv.k, torch::matmul(tl, UKT[l])}, 1);
       kv.v = torch::cat({kv.v, torch::matmul(tl, UVT[l])}, 1);

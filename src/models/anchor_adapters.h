@@ -21,16 +21,23 @@ class TokenPrior;
 // softmax over [K; K^s], every token sees every memory slot) and are left out of the
 // dumped config, so runs trained before these switches keep their names and hashes.
 // Deviations and the evidence behind them: docs/choices.md ("AnchorRoute: adapters").
+// Text slots beside H^s (ours: dual context read as a text branch kept apart from the
+// anchor memory): a condition MLP of the pooled sentence vector (one slot) and the
+// sequence-level text memory (one slot per word), projected like eq. (14), values zero-init.
+// Off by default and then left out of the dump.
+struct AnchorKvTextSlotsConfig : Config {
+  bool enabled = false;
+  void visit(FieldVisitor& v) override;
+  bool omitted_from_dump() const override { return !enabled; }
+};
+
 struct AnchorKvMemoryConfig : Config {
   std::string normaliser = "joint";  // joint: eq. (15) | own: the block's own normaliser (identity at init)
   int window = -1;                   // -1: every slot (eq. (15)); w >= 0: token n sees slots |n - m| <= w
-  // Text slots beside H^s (ours: dual context read as a text branch kept apart from the
-  // anchor memory): a condition MLP of the pooled sentence vector (one slot) and the
-  // sequence-level text memory (one slot per word), projected like eq. (14), values zero-init.
-  bool text_slots = false;
+  AnchorKvTextSlotsConfig text_slots;
   void visit(FieldVisitor& v) override;
   bool paper() const { return normaliser == "joint" && window < 0; }
-  bool omitted_from_dump() const override { return paper() && !text_slots; }
+  bool omitted_from_dump() const override { return paper() && !text_slots.enabled; }
 };
 
 // Where controlled training spends its signal, and an audit switch (issue 15). Defaults:
@@ -156,9 +163,9 @@ struct AnchorKVAdapterImpl : AnchorAdapterModule {
   AnchorKVAdapterImpl(const AnchorAdapterConfig& c, const TokenTransformerOptions& backbone, int64_t stride,
                       int64_t feature_width);
   TokenTransformerHooks hooks(const AdapterInputs& in) override;
-  bool reads_text() const override { return AnchorAdapterModule::reads_text() || memory.text_slots; }
+  bool reads_text() const override { return AnchorAdapterModule::reads_text() || memory.text_slots.enabled; }
   std::vector<torch::Tensor> P, UK, UV;  // per block [d_s, r], [r, d], [r, d]
-  std::vector<torch::Tensor> PT, UKT, UVT;  // text slots (memory.text_slots): [text_dim, r], [r, d], [r, d]
+  std::vector<torch::Tensor> PT, UKT, UVT;  // text slots (memory.text_slots.enabled): [text_dim, r], [r, d], [r, d]
   torch::nn::Sequential text_cond{nullptr};  // condition MLP of the pooled sentence vector
   int64_t heads, head_dim;
   double rope_base;

@@ -305,7 +305,7 @@ AnchorAdapterConfig path_config() {
 AnchorAdapterConfig text_slots_config() {
   auto c = aligned_config(1);
   c.dual_context = false;
-  c.anchorkv.text_slots = true;
+  c.anchorkv.text_slots.enabled = true;
   return c;
 }
 
