@@ -147,7 +147,7 @@ torch::Tensor FlowControlNet::raw_velocity(const torch::Tensor& x, const torch::
   // The branch adds to the base's blocks, so its output is in the base's
   // parametrisation (velocity or clean endpoint): convert like the base does.
   return base_->net()->to_velocity(
-      (*branch_)->forward(*base_->net()->transformer, x, tt, text, mask, signal, control_on).velocity, x, tt);
+      (*branch_)->forward(*base_->net()->transformer, x, tt, text, mask, signal, control_on).velocity, x, tt, mask);
 }
 
 torch::Tensor FlowControlNet::velocity(const torch::Tensor& x, const torch::Tensor& t, const torch::Tensor& text,

@@ -28,6 +28,8 @@ std::string FlowPriorConfig::validate() const {
   if (auto e = text_fields_error(); !e.empty()) return e;
   if (eval_t.empty()) return "eval_t needs at least one flow time";
   if (temporal_kernel % 2 == 0) return fmt::format("temporal_kernel {} must be odd (centred on its frame)", temporal_kernel);
+  if (kinematic_head.enabled && prediction != "clean")
+    return "kinematic_head.enabled needs prediction: clean (the head states the clean endpoint x1_hat)";
   if (prediction == "velocity" && loss == "clean")
     return "loss: clean needs prediction: clean (a velocity network's clean error is its velocity error times 1 - t)";
   return "";
@@ -43,6 +45,7 @@ FlowTransformerOptions FlowPriorConfig::transformer_options(int num_joints) cons
   o.dropout = dropout;
   o.cond_dim = text_width;
   o.temporal_kernel = temporal_kernel;
+  if (kinematic_head.enabled) o.out_channels = kinematic_channel_count(num_joints);
   return o;
 }
 
@@ -65,18 +68,30 @@ FlowPriorNetImpl::FlowPriorNetImpl(int vocab_size, int num_joints, const FlowPri
                                        nn::GELU(), nn::Linear(w, w)));
     text_frozen = c.text_encoder.frozen;
   }
+  if (c.kinematic_head.enabled) {
+    kinematic_head = true;
+    const int64_t C = kinematic_channel_count(num_joints);
+    kin_mean = register_buffer("kin_mean", torch::zeros({C}));
+    kin_std = register_buffer("kin_std", torch::ones({C}));
+  }
 }
 
-torch::Tensor FlowPriorNetImpl::to_velocity(const torch::Tensor& out, const torch::Tensor& x,
-                                            const torch::Tensor& t) const {
+torch::Tensor FlowPriorNetImpl::decode_head(const torch::Tensor& out, const torch::Tensor& mask) const {
+  auto ch = out * kin_std.to(out.device(), out.scalar_type()) + kin_mean.to(out.device(), out.scalar_type());
+  auto world = joints_from_kinematic(ch, mask.to(out.device()));
+  return (world - joint_mean.to(out.device(), out.scalar_type())) / joint_std.to(out.device(), out.scalar_type());
+}
+
+torch::Tensor FlowPriorNetImpl::to_velocity(const torch::Tensor& out, const torch::Tensor& x, const torch::Tensor& t,
+                                            const torch::Tensor& mask) const {
   if (!clean_prediction) return out;
   auto gap = (1 - t.to(x.device(), x.scalar_type())).clamp_min(1e-6).view({-1, 1, 1, 1});
-  return (out - x) / gap;
+  return (to_clean(out, x, t, mask) - x) / gap;
 }
 
-torch::Tensor FlowPriorNetImpl::to_clean(const torch::Tensor& out, const torch::Tensor& x,
-                                         const torch::Tensor& t) const {
-  if (clean_prediction) return out;
+torch::Tensor FlowPriorNetImpl::to_clean(const torch::Tensor& out, const torch::Tensor& x, const torch::Tensor& t,
+                                         const torch::Tensor& mask) const {
+  if (clean_prediction) return kinematic_head ? decode_head(out, mask) : out;
   return x + (1 - t.to(x.device(), x.scalar_type())).view({-1, 1, 1, 1}) * out;
 }
 
@@ -139,6 +154,17 @@ class FlowPriorTrainer : public Trainable {
     torch::NoGradGuard ng;
     net_->joint_mean.copy_(ctx.data->joint_mean());
     net_->joint_std.copy_(ctx.data->joint_std());
+    if (net_->kinematic_head) {
+      // The head's channel statistics over the training split's valid frames.
+      KinematicStats stats;
+      for (const auto& chunk : chunked(ctx.data->split("train"), 256)) {
+        MotionBatch b = ctx.data->batch(chunk, 0, 1, torch::kCPU);
+        stats.add(ctx.data->denormalize(b.joints), b.mask);
+      }
+      auto [mean, std] = stats.mean_std();
+      net_->kin_mean.copy_(mean);
+      net_->kin_std.copy_(std);
+    }
   }
   nn::Module& module() override { return *net_; }
   // A frozen text encoder is left out of the optimiser (and so of the EMA): its
@@ -253,14 +279,27 @@ class FlowPriorTrainer : public Trainable {
     // A clean network's velocity error is its clean error over max(1 - t, eps):
     // exactly the velocity error where 1 - t >= eps, and no target that pushes
     // x1_hat past x1 where the floor bites.
+    auto inv_gap = [&] { return 1 / (1 - t).clamp_min(cfg_.clean_eps).view({-1, 1, 1, 1}); };
     auto v_err = [&] {
       if (!net_->clean_prediction) return out - (x1 - x0);
-      return (out - x1) / (1 - t).clamp_min(cfg_.clean_eps).view({-1, 1, 1, 1});
+      return (net_->to_clean(out, xt, t, b.mask) - x1) * inv_gap();
     };
-    auto x_err = [&] { return net_->to_clean(out, xt, t) - x1; };
+    auto x_err = [&] { return net_->to_clean(out, xt, t, b.mask) - x1; };
     if (space == "both") return {mse(v_err()), mse(x_err())};
     auto err = space == "clean" ? x_err() : v_err();
     auto loss = mse(err);
+    if (net_->kinematic_head && cfg_.kinematic_head.weight > 0) {
+      // The head's channels against the truth's, each z-scored by its own training
+      // statistics (the root's step and the root-relative joints get their own unit),
+      // with the time weight of the chosen loss.
+      auto dev = out.device();
+      auto target = (kinematic_channels(ctx_.data->denormalize(x1), b.mask) - net_->kin_mean.to(dev)) /
+                    net_->kin_std.to(dev);
+      auto kerr = out - target;
+      if (space != "clean") kerr = kerr * inv_gap().view({-1, 1, 1});
+      auto km = b.mask.unsqueeze(-1).to(out.dtype());
+      loss = loss + cfg_.kinematic_head.weight * (kerr.pow(2) * km).sum() / (wm.sum() * out.size(2) + 1e-8);
+    }
     if (cfg_.smooth_weight > 0 && err.size(1) > 1) {
       // Frame-to-frame differences of the error on pairs of valid frames: white
       // (jitter) error counts up to 4x, a slow offset hardly at all.
@@ -359,7 +398,7 @@ torch::Tensor FlowPrior::null_texts(int64_t B) const { return (*net_)->null_cond
 torch::Tensor FlowPrior::raw_velocity(const torch::Tensor& x, const torch::Tensor& t, const torch::Tensor& text,
                                       const torch::Tensor& mask) const {
   auto tt = t.to(x.device(), torch::kFloat32).reshape({-1}).expand({x.size(0)});
-  return (*net_)->to_velocity((*net_)->transformer->forward(x, tt, text, mask).velocity, x, tt);
+  return (*net_)->to_velocity((*net_)->transformer->forward(x, tt, text, mask).velocity, x, tt, mask);
 }
 
 torch::Tensor FlowPrior::velocity(const torch::Tensor& x, const torch::Tensor& t, const torch::Tensor& text,

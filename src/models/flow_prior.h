@@ -12,6 +12,7 @@
 #include "data/text_vocab.h"
 #include "models/flow_transformer.h"
 #include "models/geometry_loss.h"
+#include "models/kinematic_head.h"
 #include "models/motion_dataset.h"
 #include "models/text_encoder.h"
 
@@ -42,6 +43,7 @@ struct FlowPriorConfig : Config, TextEncoderFields {
   int temporal_kernel = 1;
   GeometryLossConfig geometry_loss;  // off by default (and then absent from the dump)
   TextEncoderSourceConfig text_encoder;  // off by default (and then absent from the dump)
+  KinematicHeadConfig kinematic_head;    // off by default (and then absent from the dump)
   void visit(FieldVisitor& v) override {
     v("depth", depth, "transformer blocks L", in_range(1, 64));
     v("width", width, "hidden size d (0 = 64 * depth)", at_least(0));
@@ -66,6 +68,9 @@ struct FlowPriorConfig : Config, TextEncoderFields {
     v("text_encoder", text_encoder,
       "a contrastively pretrained text_clip run whose text encoder (same text_* sizes) replaces the jointly "
       "trained one (off by default)");
+    v("kinematic_head", kinematic_head,
+      "the network states x1_hat in root steps, root height, root position and root-relative joints, with a "
+      "loss on those channels (ours; off by default)");
   }
   std::string validate() const override;
   FlowTransformerOptions transformer_options(int num_joints) const;
@@ -80,12 +85,19 @@ struct FlowPriorNetImpl : torch::nn::Module {
   torch::Tensor encode_text(const torch::Tensor& ids, const torch::Tensor& lengths);
   // The null condition broadcast to [B, text_width].
   torch::Tensor null_condition(int64_t B) const;
-  // The velocity the network's output `out` stands for at (x, t) (t [B]), and the
-  // clean endpoint it implies: identity / x + (1 - t) out for velocity networks,
-  // (out - x)/(1 - t) / identity for clean ones (samplers never ask at t = 1).
-  torch::Tensor to_velocity(const torch::Tensor& out, const torch::Tensor& x, const torch::Tensor& t) const;
-  torch::Tensor to_clean(const torch::Tensor& out, const torch::Tensor& x, const torch::Tensor& t) const;
+  // The velocity the network's output `out` stands for at (x, t) (t [B]; mask [B, T]
+  // bool of valid frames), and the clean endpoint it implies: identity / x + (1 - t) out
+  // for velocity networks, (x1_hat - x)/(1 - t) / x1_hat for clean ones (samplers never
+  // ask at t = 1), where x1_hat is `out` itself or, with the kinematic head, the
+  // normalised joints its channels decode to (decode_head).
+  torch::Tensor to_velocity(const torch::Tensor& out, const torch::Tensor& x, const torch::Tensor& t,
+                            const torch::Tensor& mask) const;
+  torch::Tensor to_clean(const torch::Tensor& out, const torch::Tensor& x, const torch::Tensor& t,
+                         const torch::Tensor& mask) const;
+  // Kinematic head: its z-scored channels [B, T, C] to normalised joints [B, T, J, 3].
+  torch::Tensor decode_head(const torch::Tensor& out, const torch::Tensor& mask) const;
   bool clean_prediction = false;
+  bool kinematic_head = false;
   // model.text_encoder.frozen with a pretrained encoder: encode_text runs `text`
   // without gradient and in eval mode whatever mode the bundle is in.
   bool text_frozen = false;
@@ -97,6 +109,9 @@ struct FlowPriorNetImpl : torch::nn::Module {
   FlowTransformer transformer{nullptr};
   torch::Tensor null_text;             // [text_width] parameter
   torch::Tensor joint_mean, joint_std;  // (3,) buffers
+  // With the kinematic head only (registered last, so other checkpoints keep their
+  // buffer list): the training split's per-channel mean and std [C].
+  torch::Tensor kin_mean, kin_std;
 };
 TORCH_MODULE(FlowPriorNet);
 

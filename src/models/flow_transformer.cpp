@@ -119,7 +119,7 @@ torch::Tensor FlowBlockImpl::forward(const torch::Tensor& x, const torch::Tensor
 // ---------------------------------------------------------------- transformer
 
 FlowTransformerImpl::FlowTransformerImpl(const FlowTransformerOptions& o) : opt(o) {
-  const int64_t d = o.width, io = o.num_joints * 3;
+  const int64_t d = o.width, io = o.num_joints * 3, oc = o.resolved_out_channels();
   TORCH_CHECK(o.temporal_kernel >= 1 && o.temporal_kernel % 2 == 1, "temporal_kernel must be odd, got ",
               o.temporal_kernel);
   const int64_t k = o.temporal_kernel;
@@ -127,7 +127,7 @@ FlowTransformerImpl::FlowTransformerImpl(const FlowTransformerOptions& o) : opt(
     embed = register_module("embed", nn::Linear(io, d));
   } else {
     embed_conv = register_module("embed_conv", nn::Conv1d(nn::Conv1dOptions(io, d, k).padding(k / 2)));
-    head_conv = register_module("head_conv", nn::Conv1d(nn::Conv1dOptions(d, io, k).padding(k / 2)));
+    head_conv = register_module("head_conv", nn::Conv1d(nn::Conv1dOptions(d, oc, k).padding(k / 2)));
   }
   t_mlp = register_module("t_mlp", nn::Sequential(nn::Linear(o.freq_dim, d), nn::SiLU(), nn::Linear(d, d)));
   cond_proj = register_module("cond_proj", nn::Linear(o.cond_dim, d));
@@ -135,7 +135,7 @@ FlowTransformerImpl::FlowTransformerImpl(const FlowTransformerOptions& o) : opt(
   for (int64_t i = 0; i < o.depth; ++i) blocks->push_back(FlowBlock(o));
   final_norm = register_module("final_norm", RMSNorm(d, false));
   final_ada = register_module("final_ada", nn::Linear(d, 2 * d));
-  if (k == 1) head = register_module("head", nn::Linear(d, io));
+  if (k == 1) head = register_module("head", nn::Linear(d, oc));
 
   // DiT initialisation: xavier linears with zero bias, N(0, 0.02) timestep MLP,
   // zero modulations and output head so the initial network outputs exactly 0.
@@ -184,6 +184,7 @@ torch::Tensor FlowTransformerImpl::output(const torch::Tensor& h, const torch::T
     z = z * valid.unsqueeze(-1).to(z.dtype());
     out = head_conv(z.transpose(1, 2)).transpose(1, 2);
   }
+  if (opt.resolved_out_channels() != opt.num_joints * 3) return out;
   return out.reshape({B, T, opt.num_joints, 3});
 }
 

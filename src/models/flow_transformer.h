@@ -44,7 +44,11 @@ struct FlowTransformerOptions {
   // lets the first and last layers compare neighbouring frames (noise is white in
   // time, motion is not) at a cost of k x those two layers.
   int64_t temporal_kernel = 1;
+  // Channels the head writes per frame; 0 = num_joints * 3 (the output is then
+  // [B, T, J, 3], else [B, T, out_channels]: the flow prior's kinematic head).
+  int64_t out_channels = 0;
   int64_t resolved_mlp_hidden() const;
+  int64_t resolved_out_channels() const { return out_channels > 0 ? out_channels : num_joints * 3; }
 };
 
 // Multi-head self-attention with q/k RMS-normalisation, RoPE and key padding.
@@ -87,7 +91,9 @@ struct FlowBlockImpl : torch::nn::Module {
 TORCH_MODULE(FlowBlock);
 
 struct FlowTransformerOutput {
-  torch::Tensor velocity;  // [B, T, J, 3]
+  // [B, T, J, 3], or [B, T, out_channels] when the options set another channel count
+  // (the owner decodes it: FlowPriorNetImpl::to_velocity).
+  torch::Tensor velocity;
 };
 
 struct FlowTransformerImpl : torch::nn::Module {
@@ -113,7 +119,7 @@ struct FlowTransformerImpl : torch::nn::Module {
   torch::nn::ModuleList blocks{nullptr};
   RMSNorm final_norm{nullptr};
   torch::nn::Linear final_ada{nullptr};                   // d -> 2d, zero-init
-  torch::nn::Linear head{nullptr};                        // d -> J*3, zero-init
+  torch::nn::Linear head{nullptr};                        // d -> J*3 (or out_channels), zero-init
   torch::nn::Conv1d embed_conv{nullptr}, head_conv{nullptr};  // temporal_kernel > 1 in place of embed / head
 };
 TORCH_MODULE(FlowTransformer);

@@ -129,6 +129,10 @@ std::vector<std::pair<std::string, torch::Tensor>> flow_weight_tensors(const Flo
 
 void write_flow_weights(const FlowPrior& prior, const FlowWeightsSource& source, const std::string& path,
                         const std::vector<FlowWeightsGroup>& extra) {
+  if (prior.config().kinematic_head.enabled)
+    fail("flow prior '{}' has model.kinematic_head, which the weights format (and tools/flow_reference.py) does "
+         "not describe yet; export a prior without it",
+         source.run_dir);
   const auto weights = flow_weight_tensors(prior);
   for (const auto& [name, t] : weights)
     if (!torch::isfinite(t).all().item<bool>())

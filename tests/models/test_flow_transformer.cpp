@@ -183,11 +183,12 @@ TEST_CASE("flow prior: clean prediction turns x1_hat into the velocity of the st
   REQUIRE(net.clean_prediction);
   auto x = torch::randn({2, 5, 22, 3}), x1 = torch::randn({2, 5, 22, 3});
   auto t = torch::tensor({0.3f, 0.99f});
-  auto v = net.to_velocity(x1, x, t);
+  auto mask = torch::ones({2, 5}, torch::kBool);
+  auto v = net.to_velocity(x1, x, t, mask);
   // x + (1 - t) v lands on x1_hat exactly, also next to t = 1 (the sampler's last step).
   CHECK(torch::allclose(x[0] + 0.7 * v[0], x1[0], 1e-5, 1e-5));
   CHECK(torch::allclose(x[1] + 0.01 * v[1], x1[1], 1e-4, 1e-4));
-  CHECK(torch::allclose(net.to_clean(x1, x, t), x1));
+  CHECK(torch::allclose(net.to_clean(x1, x, t, mask), x1));
   // Training and validation run, and report the clean-endpoint error beside the velocity error.
   auto out = tr->loss({0, 1});
   REQUIRE(std::isfinite(out.loss.item<double>()));

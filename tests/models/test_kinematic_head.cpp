@@ -1,0 +1,166 @@
+// The flow prior's kinematic head: the map between absolute joints and its channels
+// is exact and linear, the root's shape comes from its steps alone, the statistics
+// count what they should, and a prior with the head trains, decodes and stays out of
+// the dump when off.
+#include <catch2/catch.hpp>
+
+#include "core/error.h"
+#include "models/flow_prior.h"
+#include "models/kinematic_head.h"
+#include "trainer_test_util.h"
+
+using namespace mc;
+
+namespace {
+// Valid frames a prefix of each row: lengths [B] of T.
+torch::Tensor prefix_mask(const std::vector<int64_t>& lengths, int64_t T) {
+  auto m = torch::zeros({static_cast<int64_t>(lengths.size()), T}, torch::kBool);
+  for (size_t b = 0; b < lengths.size(); ++b) m[b].narrow(0, 0, lengths[b]).fill_(true);
+  return m;
+}
+// Random world clips whose root wanders by metres, like the fixture's.
+torch::Tensor wandering_clips(int64_t B, int64_t T, int64_t J) {
+  auto root = torch::cumsum(torch::randn({B, T, 1, 3}) * 0.05, 1) + torch::randn({B, 1, 1, 3}) * 3.0;
+  return root + torch::randn({B, T, J, 3}) * 0.3;
+}
+}  // namespace
+
+TEST_CASE("kinematic head: channels decode back to the joints on valid frames", "[flow][kinematic]") {
+  const int64_t J = 22, T = 11;
+  for (uint64_t seed : {1u, 2u, 3u, 4u}) {
+    torch::manual_seed(seed);
+    auto world = wandering_clips(3, T, J).to(torch::kFloat64);
+    auto mask = prefix_mask({11, 6, 1}, T);
+    auto ch = kinematic_channels(world, mask);
+    REQUIRE(ch.size(2) == kinematic_channel_count(J));
+    auto back = joints_from_kinematic(ch, mask);
+    auto vm = mask.view({3, T, 1, 1}).expand_as(world);
+    CHECK(torch::allclose(back.masked_select(vm), world.masked_select(vm), 1e-9, 1e-9));
+    CHECK(torch::isfinite(back).all().item<bool>());
+    // The first frame and padded frames have no step.
+    CHECK(ch.select(1, 0).narrow(1, 0, 2).abs().max().item<double>() == 0.0);
+    CHECK(ch[1].narrow(0, 6, T - 6).narrow(1, 0, 2).abs().max().item<double>() == 0.0);
+  }
+}
+
+TEST_CASE("kinematic head: the decode is linear, and the root's shape is the running sum of its steps",
+          "[flow][kinematic]") {
+  const int64_t J = 5, T = 9, C = kinematic_channel_count(J);
+  auto mask = prefix_mask({9, 4}, T);
+  torch::manual_seed(7);
+  for (int rep = 0; rep < 5; ++rep) {
+    auto a = torch::randn({2, T, C}, torch::kFloat64), b = torch::randn({2, T, C}, torch::kFloat64);
+    auto lhs = joints_from_kinematic(2.0 * a - 0.5 * b, mask);
+    auto rhs = 2.0 * joints_from_kinematic(a, mask) - 0.5 * joints_from_kinematic(b, mask);
+    CHECK(torch::allclose(lhs, rhs, 1e-9, 1e-9));
+    // Noise in the root-position channels moves the whole root path by their mean
+    // over valid frames and nothing else: frame-to-frame moves come from the steps.
+    auto noisy = a.clone();
+    auto noise = torch::randn({2, T, 2}, torch::kFloat64);
+    noisy.narrow(2, 3, 2).add_(noise);
+    auto d = joints_from_kinematic(noisy, mask) - joints_from_kinematic(a, mask);  // [2, T, J, 3]
+    for (int64_t row = 0; row < 2; ++row) {
+      const int64_t L = row == 0 ? 9 : 4;
+      auto mean = noise[row].narrow(0, 0, L).mean(0);  // [2]
+      for (int64_t f = 0; f < L; ++f) {
+        CHECK(d[row][f][J - 1][0].item<double>() == Approx(mean[0].item<double>()).margin(1e-9));
+        CHECK(d[row][f][0][2].item<double>() == Approx(mean[1].item<double>()).margin(1e-9));
+        CHECK(d[row][f][0][1].item<double>() == Approx(0.0).margin(1e-12));  // height has its own channel
+      }
+    }
+  }
+}
+
+TEST_CASE("kinematic head: statistics over valid frames, steps over valid frame pairs", "[flow][kinematic]") {
+  const int64_t J = 3, T = 4;
+  // One clip of 3 valid frames whose root moves +1 m in x per frame, joints fixed offsets.
+  auto world = torch::zeros({1, T, J, 3});
+  for (int64_t f = 0; f < T; ++f) {
+    world[0][f][0][0] = static_cast<float>(f);
+    world[0][f][0][1] = 0.9f;
+    world[0][f][1] = world[0][f][0] + torch::tensor({0.0f, 0.5f, 0.0f});
+    world[0][f][2] = world[0][f][0] + torch::tensor({0.2f, -0.5f, 0.1f});
+  }
+  world[0][3].fill_(100.0f);  // padding: must not count
+  KinematicStats stats;
+  stats.add(world, prefix_mask({3}, T));
+  auto [mean, std] = stats.mean_std();
+  CHECK(stats.count[0].item<double>() == 2.0);  // steps: frame pairs (1,0), (2,1)
+  CHECK(stats.count[2].item<double>() == 3.0);
+  CHECK(mean[0].item<double>() == Approx(1.0));  // step x
+  CHECK(std[0].item<double>() == Approx(1e-3));   // constant: floored at 1 mm
+  CHECK(mean[2].item<double>() == Approx(0.9));  // root height
+  CHECK(mean[3].item<double>() == Approx(1.0));  // root x over frames 0, 1, 2
+  CHECK(std[3].item<double>() == Approx(std::sqrt(2.0 / 3.0)));
+  CHECK(mean[5 + 3 + 1].item<double>() == Approx(-0.5));  // joint 2's relative height
+}
+
+namespace {
+std::unique_ptr<Trainable> kin_trainer(TrainJobConfig& job, const std::string& extra) {
+  return test::trainer_on_random_clips(job,
+                                       "model:\n  type: flow_prior\n  depth: 2\n  width: 32\n  heads: 2\n"
+                                       "  text_width: 16\n  text_heads: 2\n  text_ff: 32\n  text_layers: 1\n"
+                                       "  prediction: clean\n" +
+                                           extra,
+                                       {12, 30, 17, 9}, true);
+}
+}  // namespace
+
+TEST_CASE("kinematic head: a flow prior with it decodes, trains, and is absent from the dump when off",
+          "[flow][kinematic]") {
+  TrainJobConfig off_job, on_job, zero_job;
+  auto off = kin_trainer(off_job, "");
+  auto on = kin_trainer(on_job, "  kinematic_head:\n    enabled: true\n");
+  auto zero = kin_trainer(zero_job, "  kinematic_head:\n    enabled: true\n    weight: 0\n");
+  CHECK(dump_config(off_job).find("kinematic_head") == std::string::npos);
+  CHECK(dump_config(on_job).find("kinematic_head") != std::string::npos);
+
+  auto& net = dynamic_cast<FlowPriorNetImpl&>(on->module());
+  REQUIRE(net.kinematic_head);
+  const int64_t J = 22, C = kinematic_channel_count(J);
+  CHECK(net.kin_mean.size(0) == C);
+  CHECK((net.kin_std > 0).all().item<bool>());
+  // The head writes C channels; x + (1 - t) v lands on the joints they decode to.
+  auto x = torch::randn({2, 6, J, 3});
+  auto out = torch::randn({2, 6, C});
+  auto mask = prefix_mask({6, 4}, 6);
+  auto t = torch::tensor({0.2f, 0.95f});
+  auto x1_hat = net.decode_head(out, mask);
+  REQUIRE(x1_hat.sizes() == x.sizes());
+  auto v = net.to_velocity(out, x, t, mask);
+  CHECK(torch::allclose(x[0] + 0.8 * v[0], x1_hat[0], 1e-5, 1e-5));
+  CHECK(torch::allclose(x[1] + 0.05 * v[1], x1_hat[1], 1e-4, 1e-4));
+  CHECK(torch::allclose(net.to_clean(out, x, t, mask), x1_hat));
+  // The head's channels of the data decode back to the data in normalised units.
+  auto world = wandering_clips(2, 6, J);
+  auto norm = (world - net.joint_mean) / net.joint_std;
+  auto z = (kinematic_channels(world, mask) - net.kin_mean) / net.kin_std;
+  auto vm = mask.view({2, 6, 1, 1}).expand_as(norm);
+  CHECK(torch::allclose(net.decode_head(z, mask).masked_select(vm), norm.masked_select(vm), 1e-4, 1e-4));
+
+  // Same weights and draws: the channel loss adds to the flow loss; both train.
+  test::same_random_weights({on.get(), zero.get()});
+  torch::manual_seed(9);
+  auto lo = on->loss({0, 1}).loss;
+  torch::manual_seed(9);
+  auto lz = zero->loss({0, 1}).loss;
+  CHECK(lo.item<double>() > lz.item<double>());
+  lo.backward();
+  double gsq = 0;
+  for (auto& p : on->trainable_parameters())
+    if (p.grad().defined()) gsq += p.grad().pow(2).sum().item<double>();
+  CHECK(std::isfinite(gsq));
+  CHECK(gsq > 0);
+  on->module().eval();
+  auto e = on->evaluate();
+  CHECK(std::isfinite(e.at("val_x1")));
+
+  // The head states x1_hat: a velocity network cannot have it.
+  TrainJobConfig bad;
+  CHECK_THROWS_AS(test::trainer_on_random_clips(bad,
+                                                "model:\n  type: flow_prior\n  depth: 2\n  width: 32\n  heads: 2\n"
+                                                "  text_width: 16\n  text_heads: 2\n  text_ff: 32\n"
+                                                "  kinematic_head:\n    enabled: true\n",
+                                                {12, 30, 17, 9}, true),
+                  mc::UserError);
+}
