@@ -231,7 +231,7 @@ class FlowControlNetTrainer : public Trainable {
     MotionBatch b = ctx_.data->batch(idx, ctx_.window, 1, ctx_.device, ctx_.trim_padding, shard);
     const std::vector<std::string> caps = ctx_.data->drawn_captions(idx);
     const int64_t B = idx.size(), T = b.joints.size(1), J = b.joints.size(2);
-    auto x0 = shard.local(torch::randn({B, T, J, 3})).to(ctx_.device);
+    auto x0 = shard.local(net_.base().net()->draw_noise(b.whole_mask, J, c10::nullopt)).to(ctx_.device);
     auto t = shard.local(torch::rand({B})).to(ctx_.device);
     auto drop = shard.local(torch::rand({B}) < cfg_.cond_drop).to(ctx_.device);
     auto control_on_all = (torch::rand({B}) >= cfg_.control_drop).to(ctx_.device, torch::kFloat32);
@@ -260,7 +260,7 @@ class FlowControlNetTrainer : public Trainable {
     auto gen = at::make_generator<at::CPUGeneratorImpl>(20240612);
     // Weighted by clips: each loss is already a mean over its chunk.
     auto chunk_values = [&](double tv, const std::vector<int64_t>& chunk) {
-      FlowValidationInputs in = flow_validation_inputs(*ctx_.data, chunk, tv, gen, ctx_.device);
+      FlowValidationInputs in = flow_validation_inputs(*ctx_.data, chunk, tv, gen, ctx_.device, &*net_.base().net());
       auto p = losses(in.batch, in.captions, in.x0, in.t, in.drop, control_mask(in.batch, gen), {}, {}, {});
       return ChunkValues{{p.fm.item<double>(), p.ctrl.item<double>()}, static_cast<double>(chunk.size())};
     };

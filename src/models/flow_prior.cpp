@@ -28,6 +28,8 @@ std::string FlowPriorConfig::validate() const {
   if (auto e = text_fields_error(); !e.empty()) return e;
   if (eval_t.empty()) return "eval_t needs at least one flow time";
   if (temporal_kernel % 2 == 0) return fmt::format("temporal_kernel {} must be odd (centred on its frame)", temporal_kernel);
+  if (kinematic_head.noise.enabled && !kinematic_head.enabled)
+    return "kinematic_head.noise.enabled needs kinematic_head.enabled (its channel statistics shape the noise)";
   if (kinematic_head.enabled && prediction != "clean")
     return "kinematic_head.enabled needs prediction: clean (the head states the clean endpoint x1_hat)";
   if (prediction == "velocity" && loss == "clean")
@@ -73,6 +75,7 @@ FlowPriorNetImpl::FlowPriorNetImpl(int vocab_size, int num_joints, const FlowPri
     const int64_t C = kinematic_channel_count(num_joints);
     kin_mean = register_buffer("kin_mean", torch::zeros({C}));
     kin_std = register_buffer("kin_std", torch::ones({C}));
+    kinematic_noise = c.kinematic_head.noise.enabled;
   }
 }
 
@@ -80,6 +83,23 @@ torch::Tensor FlowPriorNetImpl::decode_head(const torch::Tensor& out, const torc
   auto ch = out * kin_std.to(out.device(), out.scalar_type()) + kin_mean.to(out.device(), out.scalar_type());
   auto world = joints_from_kinematic(ch, mask.to(out.device()));
   return (world - joint_mean.to(out.device(), out.scalar_type())) / joint_std.to(out.device(), out.scalar_type());
+}
+
+torch::Tensor FlowPriorNetImpl::draw_noise(const torch::Tensor& mask, int64_t num_joints,
+                                           c10::optional<at::Generator> gen) const {
+  const int64_t B = mask.size(0), T = mask.size(1);
+  auto opts = torch::TensorOptions();
+  if (!kinematic_noise) return torch::randn({B, T, num_joints, 3}, gen, opts);
+  const int64_t C = kinematic_channel_count(num_joints);
+  auto eps = torch::randn({B, T, C}, gen, opts);
+  auto m = mask.to(torch::kCPU, torch::kBool);
+  auto scale = kin_std.to(torch::kCPU).view({1, 1, C}).expand({B, 1, C}).clone();
+  // The root's offset is the mean of the position channels over valid frames: scaled
+  // by sqrt(frames), it keeps the std of one root position.
+  auto root_gain = m.sum(1).clamp_min(1).to(torch::kFloat32).sqrt();  // [B]
+  scale.narrow(2, 3, 2).mul_(root_gain.view({B, 1, 1}));
+  auto world = joints_from_kinematic(eps * scale, m);
+  return world / joint_std.to(torch::kCPU);
 }
 
 torch::Tensor FlowPriorNetImpl::to_velocity(const torch::Tensor& out, const torch::Tensor& x, const torch::Tensor& t,
@@ -113,12 +133,14 @@ torch::Tensor FlowPriorNetImpl::null_condition(int64_t B) const { return null_te
 // ---------------------------------------------------------------- trainer
 
 FlowValidationInputs flow_validation_inputs(const MotionDataset& data, const std::vector<int64_t>& chunk, double t,
-                                            at::Generator& gen, torch::Device device) {
+                                            at::Generator& gen, torch::Device device, const FlowPriorNetImpl* net) {
   FlowValidationInputs in;
   in.batch = data.batch(chunk, 0, 1, device);
   in.captions = data.first_captions(chunk);
   const int64_t B = chunk.size();
-  in.x0 = torch::randn(in.batch.joints.sizes(), gen, torch::TensorOptions()).to(device);
+  in.x0 = (net ? net->draw_noise(in.batch.mask, in.batch.joints.size(2), gen)
+               : torch::randn(in.batch.joints.sizes(), gen, torch::TensorOptions()))
+              .to(device);
   in.t = torch::full({B}, t, torch::TensorOptions().device(device));
   in.drop = torch::zeros({B}, torch::TensorOptions().dtype(torch::kBool).device(device));
   return in;
@@ -185,7 +207,8 @@ class FlowPriorTrainer : public Trainable {
     const int64_t B = idx.size();
     auto sizes = b.joints.sizes().vec();
     sizes[0] = B;
-    auto x0 = shard.local(torch::randn(sizes)).to(ctx_.device);
+    // The whole batch's noise (its mask shapes kinematic noise), cut to the shard's rows.
+    auto x0 = shard.local(net_->draw_noise(b.whole_mask, sizes[2], c10::nullopt)).to(ctx_.device);
     auto t = shard.local(torch::rand({B})).to(ctx_.device);
     auto drop = shard.local(torch::rand({B}) < cfg_.cond_drop).to(ctx_.device);
     auto fl = flow_loss(b, shard.local(caps), x0, t, drop, cfg_.loss)[0];
@@ -205,7 +228,7 @@ class FlowPriorTrainer : public Trainable {
     // Velocity error (eq. (3)) and clean-endpoint error, weighted by valid frames: the
     // second compares velocity and clean networks on one scale.
     auto chunk_values = [&](double tv, const std::vector<int64_t>& chunk) {
-      FlowValidationInputs in = flow_validation_inputs(*ctx_.data, chunk, tv, gen, ctx_.device);
+      FlowValidationInputs in = flow_validation_inputs(*ctx_.data, chunk, tv, gen, ctx_.device, &*net_);
       const double w = in.batch.mask.sum().item<double>();
       auto both = flow_loss(in.batch, in.captions, in.x0, in.t, in.drop, "both");
       return ChunkValues{{both[0].item<double>(), both[1].item<double>()}, w};
@@ -417,6 +440,12 @@ torch::Tensor FlowPrior::velocity(const torch::Tensor& x, const torch::Tensor& t
          "retrain it (lower optim.lr) before sampling",
          run_dir_, tt[0].item<double>());
   return v;
+}
+
+torch::Tensor FlowPrior::draw_noise(const std::vector<int64_t>& lengths, int64_t T, at::Generator& gen) const {
+  auto mask = torch::zeros({static_cast<int64_t>(lengths.size()), T}, torch::kBool);
+  for (size_t i = 0; i < lengths.size(); ++i) mask[i].narrow(0, 0, std::min<int64_t>(lengths[i], T)).fill_(true);
+  return (*net_)->draw_noise(mask, num_joints(), gen);
 }
 
 torch::Tensor FlowPrior::normalize(const torch::Tensor& world) const {

@@ -96,8 +96,14 @@ struct FlowPriorNetImpl : torch::nn::Module {
                          const torch::Tensor& mask) const;
   // Kinematic head: its z-scored channels [B, T, C] to normalised joints [B, T, J, 3].
   torch::Tensor decode_head(const torch::Tensor& out, const torch::Tensor& mask) const;
+  // The source noise x0 [B, T, J, 3] (normalised) for clips whose valid frames are
+  // `mask` [B, T]: N(0, I) drawn from `gen` (exactly as torch::randn({B, T, J, 3}, gen)),
+  // or with model.kinematic_head.noise = kinematic, i.i.d. channel draws [B, T, C]
+  // decoded by the head's map at the channels' std. nullopt = torch's default generator.
+  torch::Tensor draw_noise(const torch::Tensor& mask, int64_t num_joints, c10::optional<at::Generator> gen) const;
   bool clean_prediction = false;
   bool kinematic_head = false;
+  bool kinematic_noise = false;
   // model.text_encoder.frozen with a pretrained encoder: encode_text runs `text`
   // without gradient and in eval mode whatever mode the bundle is in.
   bool text_frozen = false;
@@ -125,7 +131,8 @@ struct FlowValidationInputs {
   torch::Tensor x0, t, drop;
 };
 FlowValidationInputs flow_validation_inputs(const MotionDataset& data, const std::vector<int64_t>& chunk, double t,
-                                            at::Generator& gen, torch::Device device);
+                                            at::Generator& gen, torch::Device device,
+                                            const FlowPriorNetImpl* net = nullptr);
 
 // A finished `flow_prior` run: config.yaml, checkpoints/final.pt, outputs/vocab.txt,
 // outputs/prior_meta.yaml. All tensors in and out are on device() in normalised
@@ -154,6 +161,9 @@ class FlowPrior {
   torch::Tensor velocity(const torch::Tensor& x, const torch::Tensor& t, const torch::Tensor& text,
                          const torch::Tensor& mask, double cfg_scale) const;
 
+  // The flow's source noise x0 [N, T, J, 3] (normalised, on the CPU) for clips of
+  // `lengths` frames padded to T, drawn from `gen` (FlowPriorNetImpl::draw_noise).
+  torch::Tensor draw_noise(const std::vector<int64_t>& lengths, int64_t T, at::Generator& gen) const;
   torch::Tensor normalize(const torch::Tensor& world) const;    // per-axis z-score, [..., 3]
   torch::Tensor denormalize(const torch::Tensor& normed) const;  // back to world metres
 

@@ -20,6 +20,25 @@
 
 namespace mc {
 
+// The flow's source noise x0 with the head: off, the papers' N(0, I) in the
+// normalised absolute joints; on, i.i.d. draws in the head's channels, each scaled
+// by its training std (the root-position channels by sqrt(valid frames), so the
+// root's offset keeps its std), decoded to joints by the same linear map. Still a
+// Gaussian on absolute joints, but one whose pose and root-path directions carry
+// noise on their own scale: pose and gait phase become visible at mid t instead of
+// in the last few steps (a shared per-axis std of ~3 m buries a 0.3 m stride until
+// t > 0.9). Its own section, absent from the dump when off, so runs with the head
+// keep their names.
+struct KinematicNoiseConfig : Config {
+  bool enabled = false;
+  void visit(FieldVisitor& v) override {
+    v("enabled", enabled,
+      "draw the source noise i.i.d. in the head's channels at their std and decode it to joints "
+      "(off: N(0, I) on the normalised joints, the papers')");
+  }
+  bool omitted_from_dump() const override { return !enabled; }
+};
+
 struct KinematicHeadConfig : Config {
   bool enabled = false;
   // Weight of the loss on the head's own channels (each z-scored by its training
@@ -27,13 +46,15 @@ struct KinematicHeadConfig : Config {
   // positive-definite weightings of the same clean-endpoint error, so the minimiser
   // (the conditional expectation) is unchanged.
   double weight = 1.0;
+  KinematicNoiseConfig noise;
   void visit(FieldVisitor& v) override {
     v("enabled", enabled,
       "the network writes x1_hat as root steps, root height, root position and root-relative joints "
       "(needs prediction: clean)");
     v("weight", weight, "weight of the z-scored loss on those channels beside the flow loss", in_range(0.0, 1e4));
+    v("noise", noise, "source noise in the head's channels (off by default)");
   }
-  bool omitted_from_dump() const override { return !enabled && weight == 1.0; }
+  bool omitted_from_dump() const override { return !enabled && weight == 1.0 && !noise.enabled; }
 };
 
 // Channels per frame for J joints: [step_x, step_z, root_y, root_x, root_z, (J-1)*3

@@ -71,7 +71,9 @@ torch::Tensor sample_controlnet(const FlowControlNet& net, const std::vector<Con
   }
   ControlTargets ct = control_targets(base, tasks, T);
   auto gen = at::make_generator<at::CPUGeneratorImpl>(seed);
-  auto noise = torch::randn({N, T, J, 3}, gen, torch::TensorOptions());
+  std::vector<int64_t> lengths;
+  for (const auto& t : tasks) lengths.push_back(t.length);
+  auto noise = base.draw_noise(lengths, T, gen);
   auto grid = torch::linspace(0.0, 1.0, cfg.steps + 1, torch::kFloat64);
   auto ga = grid.accessor<double, 1>();
   const auto dev = base.device();

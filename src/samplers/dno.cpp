@@ -74,6 +74,10 @@ DnoResult dno_generate(const FlowPrior& prior, const std::vector<std::string>& c
            prior.run_dir(), prior.t_max());
     T = std::max<int64_t>(T, lengths[i]);
   }
+  if (prior.net()->kinematic_noise)
+    fail("DNO: the flow prior '{}' draws kinematic source noise (model.kinematic_head.noise), and DNO's noise "
+         "regulariser assumes N(0, I); use a prior with absolute noise",
+         prior.run_dir());
   const auto dev = prior.device();
   auto gen = at::make_generator<at::CPUGeneratorImpl>(seed);
   auto noise = torch::randn({N, T, J, 3}, gen, torch::TensorOptions());

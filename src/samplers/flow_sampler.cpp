@@ -12,6 +12,11 @@ namespace mc {
 
 // ---------------------------------------------------------------- sampling
 
+torch::Tensor FlowStep::fresh_noise() const {
+  if (prior) return prior->net()->draw_noise(mask, x.size(2), *generator);
+  return torch::randn(x.sizes(), *generator, torch::TensorOptions());
+}
+
 FlowSampleResult sample_flow(const FlowPrior& prior, const std::vector<std::string>& captions,
                              const std::vector<int>& lengths, const FlowSamplerConfig& cfg, uint64_t seed,
                              FlowStepper* stepper) {
@@ -29,7 +34,7 @@ FlowSampleResult sample_flow(const FlowPrior& prior, const std::vector<std::stri
   EulerStepper euler;
   FlowStepper& step_rule = stepper ? *stepper : euler;
   auto gen = at::make_generator<at::CPUGeneratorImpl>(seed);
-  auto noise = torch::randn({N, T, J, 3}, gen, torch::TensorOptions());
+  auto noise = prior.draw_noise(std::vector<int64_t>(lengths.begin(), lengths.end()), T, gen);
   auto grid = torch::linspace(0.0, 1.0, cfg.steps + 1, torch::kFloat64);
   auto ga = grid.accessor<double, 1>();
   const auto dev = prior.device();
@@ -59,6 +64,7 @@ FlowSampleResult sample_flow(const FlowPrior& prior, const std::vector<std::stri
       st.mask = mask;
       st.sample_ids = ids;
       st.generator = &gen;
+      st.prior = &prior;
       st.v = prior.velocity(x, torch::full({B}, st.t, torch::TensorOptions().device(dev)), text, mask, cfg.cfg_scale);
       x = step_rule.step(st);
     }

@@ -34,6 +34,10 @@ struct FlowStep {
   torch::Tensor mask;  // [B, T] valid frames
   std::vector<int64_t> sample_ids;  // which requested samples the batch rows are (for per-sample constraints)
   at::Generator* generator = nullptr;  // the sampler's seeded generator (CPU), for extra noise
+  // Fresh source noise x0 [B, T, J, 3] for this batch from `generator`: the prior's
+  // (FlowPrior::draw_noise), N(0, I) when unset.
+  torch::Tensor fresh_noise() const;
+  const FlowPrior* prior = nullptr;
   // Endpoint predictions of the straight path through (x, t) with velocity v.
   torch::Tensor x1_hat() const { return x + (1 - t) * v; }
   torch::Tensor x0_hat() const { return x - t * v; }

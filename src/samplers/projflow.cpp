@@ -239,7 +239,8 @@ torch::Tensor ProjFlowStepper::step(const FlowStep& s) {
   const double eta = cfg_.noise == "flowdps" ? s.t_next : 0.0;
   torch::Tensor x0_tilde = x0_hat;
   if (eta > 0) {
-    auto eps = torch::randn(x0_hat.sizes(), *s.generator, torch::TensorOptions()).to(x0_hat.device());
+    // A fresh draw of the prior's source noise (N(0, I) unless its kinematic noise).
+    auto eps = s.fresh_noise().to(x0_hat.device());
     x0_tilde = std::sqrt(1 - eta) * x0_hat + std::sqrt(eta) * eps;
   }
   return s.t_next * x1_star + (1 - s.t_next) * x0_tilde;

@@ -4,6 +4,8 @@
 // the dump when off.
 #include <catch2/catch.hpp>
 
+#include <ATen/CPUGeneratorImpl.h>
+
 #include "core/error.h"
 #include "models/flow_prior.h"
 #include "models/kinematic_head.h"
@@ -163,4 +165,45 @@ TEST_CASE("kinematic head: a flow prior with it decodes, trains, and is absent f
                                                 "  kinematic_head:\n    enabled: true\n",
                                                 {12, 30, 17, 9}, true),
                   mc::UserError);
+}
+
+TEST_CASE("kinematic head: source noise is the papers' N(0, I) unless asked, else Gaussian at the channels' scale",
+          "[flow][kinematic]") {
+  TrainJobConfig abs_job, kin_job;
+  auto abs = kin_trainer(abs_job, "  kinematic_head:\n    enabled: true\n");
+  auto kin = kin_trainer(kin_job, "  kinematic_head:\n    enabled: true\n    noise:\n      enabled: true\n");
+  CHECK(dump_config(abs_job).find("noise") == std::string::npos);
+  CHECK(dump_config(kin_job).find("noise") != std::string::npos);
+  auto& an = dynamic_cast<FlowPriorNetImpl&>(abs->module());
+  auto& kn = dynamic_cast<FlowPriorNetImpl&>(kin->module());
+  const int64_t J = 22, T = 40, B = 400;
+  auto mask = prefix_mask(std::vector<int64_t>(B, T), T);
+  // Absolute: bit for bit the draw every sampler made before the option existed.
+  auto g1 = at::make_generator<at::CPUGeneratorImpl>(5), g2 = at::make_generator<at::CPUGeneratorImpl>(5);
+  CHECK(torch::equal(an.draw_noise(mask, J, g1), torch::randn({B, T, J, 3}, g2, torch::TensorOptions())));
+  // Kinematic: root-relative offsets carry each channel's std, the root's steps the
+  // steps' std, in world metres.
+  auto g3 = at::make_generator<at::CPUGeneratorImpl>(6);
+  auto x0 = kn.draw_noise(mask, J, g3);
+  REQUIRE(x0.sizes() == torch::IntArrayRef({B, T, J, 3}));
+  auto world = x0 * kn.joint_std;
+  auto ch = kinematic_channels(world, mask);
+  const std::vector<int64_t> bt = {0, 1};
+  auto rel_std = ch.narrow(2, 5, (J - 1) * 3).std(bt);
+  auto want = kn.kin_std.narrow(0, 5, (J - 1) * 3);
+  CHECK(((rel_std / want) - 1).abs().max().item<double>() < 0.05);
+  auto step_std = ch.narrow(1, 1, T - 1).narrow(2, 0, 2).std(bt);
+  CHECK(((step_std / kn.kin_std.narrow(0, 0, 2)) - 1).abs().max().item<double>() < 0.05);
+  // The root's mean position keeps one position's std.
+  auto offset_std = world.select(2, 0).mean(1).std(std::vector<int64_t>{0});  // [3]
+  CHECK(offset_std[0].item<double>() == Approx(kn.kin_std[3].item<double>()).epsilon(0.15));
+  // Training and validation draw it too.
+  torch::manual_seed(3);
+  auto out = kin->loss({0, 1});
+  CHECK(std::isfinite(out.loss.item<double>()));
+  kin->module().eval();
+  CHECK(std::isfinite(kin->evaluate().at("val_x1")));
+  // It needs the head (its statistics shape the noise).
+  TrainJobConfig bad;
+  CHECK_THROWS_AS(kin_trainer(bad, "  kinematic_head:\n    noise:\n      enabled: true\n"), mc::UserError);
 }
