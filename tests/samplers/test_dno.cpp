@@ -213,3 +213,17 @@ TEST_CASE("generator dno: built from config, one world motion per task, clear ta
   std::string pe = user_error_of([&] { parse_config(config_from_string("generator:\n  type: dno\n  opt_steps: 3\n"), bad); });
   CHECK(pe.find("prior.run_dir") != std::string::npos);
 }
+
+TEST_CASE("DNO refuses a prior whose source noise is not N(0, I)", "[dno][kinematic]") {
+  TempDir dir("dno_kin");
+  write_random_prior_run(dir.path, 40, "flow_prior", kPriorWordsWithNumbers,
+                         "  prediction: clean\n  kinematic_head:\n    enabled: true\n    noise:\n      enabled: true\n");
+  FlowPrior prior = FlowPrior::load(dir.path.string());
+  std::vector<ControlTask> tasks = {
+      make_task("k", 20, "- {type: keyframe, joints: [0], frames: [3, 15], from_source: true}\n", 11, "a person walks")};
+  auto obs = model_observations(prior, tasks);
+  DnoConfig c;
+  c.opt_steps = 2;
+  auto msg = user_error_of([&] { dno_generate(prior, {"a person walks"}, {20}, obs, c, 7); });
+  CHECK(msg.find("kinematic") != std::string::npos);
+}
