@@ -98,7 +98,7 @@ struct FlowPriorNetImpl : torch::nn::Module {
   torch::Tensor decode_head(const torch::Tensor& out, const torch::Tensor& mask) const;
   // The source noise x0 [B, T, J, 3] (normalised) for clips whose valid frames are
   // `mask` [B, T]: N(0, I) drawn from `gen` (exactly as torch::randn({B, T, J, 3}, gen)),
-  // or with model.kinematic_head.noise = kinematic, i.i.d. channel draws [B, T, C]
+  // or with model.kinematic_head.noise.enabled, i.i.d. channel draws [B, T, C]
   // decoded by the head's map at the channels' std. nullopt = torch's default generator.
   torch::Tensor draw_noise(const torch::Tensor& mask, int64_t num_joints, c10::optional<at::Generator> gen) const;
   bool clean_prediction = false;

@@ -87,3 +87,15 @@ TEST_CASE("flow weights: every tensor of the bundle under its module path, bit f
     CHECK_FALSE(fs::exists(bad));
   }
 }
+
+TEST_CASE("flow weights: a prior with the kinematic head is refused, naming it, and nothing is written",
+          "[flow_weights][kinematic]") {
+  TempDir dir("flow_weights_kin");
+  const fs::path run = dir.path / "prior";
+  write_random_prior_run(run, 40, "flow_prior", kPriorWords, "  prediction: clean\n  kinematic_head:\n    enabled: true\n");
+  FlowPrior prior = FlowPrior::load(run.string());
+  const std::string out = (dir.path / "w.h5").string();
+  expect_user_error([&] { write_flow_weights(prior, {run.string(), "model: {}\n", "abc123"}, out); },
+                    {"model.kinematic_head", "export a prior without it"});
+  CHECK_FALSE(fs::exists(out));
+}
