@@ -32,7 +32,7 @@ def parse_args(argv):
     p.add_argument("--scales", type=float, nargs="+", required=True, help="candidate guidance.scale values")
     p.add_argument("--samples", type=int, default=6, help="val clips per density (joints cycled over them)")
     p.add_argument("--joints", default="[0,10,11,15,20,21]", help="protocol.joints (OmniControl's six)")
-    p.add_argument("--prior", default="configs/prior/flow_standard.yaml", help="flow prior training config")
+    p.add_argument("--prior", default="configs/prior/flow_standard_kin.yaml", help="flow prior training config")
     p.add_argument("--data", default="data/fixture_standard.h5", help="motion file (its val split is used)")
     p.add_argument("--fixture", default="configs/data/standard.yaml", help="fixture config that builds --data")
     p.add_argument("--steps", type=int, default=50, help="sampler steps (the standard profile's 50)")
