@@ -6,7 +6,9 @@ docs/formats.md, "Flow prior weights"); this file re-implements the eval-mode ne
 src/models/flow_prior.cpp, flow_transformer.cpp and text_encoder.cpp (the caption tokenizer,
 the post-norm text transformer, AdaLN-Zero blocks with RMSNorm, q/k norm, RoPE, SwiGLU and key
 padding, classifier-free guidance) and the Euler sampler step of src/samplers/flow_sampler.cpp,
-in numpy only (float64; the time and RoPE angles in float32 as torch forms them).
+in numpy only (float64; the time and RoPE angles in float32 as torch forms them). A prior with the
+kinematic head (format version 2, src/models/kinematic_head.cpp) is decoded through the same linear
+map from its channels (root steps, root height, root position, root-relative joints) to joints.
 
     python3 tools/flow_reference.py check prior.h5 [--tolerance 1e-4]
         compare with the C++ output stored by --probe (exit 0 within tolerance, 1 beyond it)
@@ -41,7 +43,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import motionio  # noqa: E402  (tokenizer and checksum seal shared with the motion-file tools)
 
 FORMAT = "motionctl.flow_weights"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 PAD, UNK, SOS, EOS = 0, 1, 2, 3
 _erf = np.vectorize(math.erf, otypes=[np.float64])
 
@@ -120,6 +122,30 @@ def rope(x, positions, base):
     return np.concatenate([x1 * cos - x2 * sin, x1 * sin + x2 * cos], -1)
 
 
+# ------------------------------------------------------------------ the kinematic head's decode
+
+def joints_from_kinematic(ch, valid):
+    """Channels [B, T, 5 + 3(J-1)] in metres and valid [B, T] bool (a prefix) to world joints [B, T, J, 3]
+    (src/models/kinematic_head.cpp): the horizontal root is the running sum of the steps (counted where a
+    frame and its predecessor are valid), shifted by the mean over valid frames of (root position channel -
+    running sum); the root height is its channel; the other joints are root-relative."""
+    ch = np.asarray(ch, np.float64)
+    valid = np.asarray(valid, bool)
+    B, T, C = ch.shape
+    J = (C - 5) // 3 + 1
+    step_valid = valid.copy()
+    step_valid[:, 0] = False
+    step_valid[:, 1:] &= valid[:, :-1]
+    path = np.cumsum(ch[:, :, 0:2] * step_valid[..., None], 1)
+    vm = valid[..., None].astype(np.float64)
+    n = np.maximum(vm.sum(1, keepdims=True), 1.0)
+    offset = ((ch[:, :, 3:5] - path) * vm).sum(1, keepdims=True) / n
+    rxz = path + offset
+    root = np.stack([rxz[..., 0], ch[:, :, 2], rxz[..., 1]], -1)[:, :, None]  # [B, T, 1, 3]
+    rel = ch[:, :, 5:].reshape(B, T, J - 1, 3)
+    return np.concatenate([root, root + rel], 2)
+
+
 # ------------------------------------------------------------------ the prior
 
 class FlowReference:
@@ -173,6 +199,21 @@ class FlowReference:
             "num_joints", "depth", "width", "heads", "head_dim", "mlp_hidden", "cond_dim", "freq_dim", "time_scale",
             "rope_base", "temporal_kernel", "rms_eps", "prediction", "clean_gap_floor", "vocab_size", "text_width",
             "text_layers", "text_heads", "text_ff", "max_words", "layer_norm_eps", "text_adapter")}
+        # Version 2 adds the kinematic head; a version-1 file has none (its head writes J * 3 channels).
+        for k in ("kinematic_head", "kinematic_noise"):
+            a[k] = int(self._attr(m, k, "/model")) if version >= 2 else 0
+        a["out_channels"] = int(self._attr(m, "out_channels", "/model")) if version >= 2 else a["num_joints"] * 3
+        kin_channels = 5 + (a["num_joints"] - 1) * 3
+        expected = kin_channels if a["kinematic_head"] else a["num_joints"] * 3
+        if a["out_channels"] != expected:
+            raise FlowWeightsError(f"{self.path}: /model out_channels {a['out_channels']} does not match "
+                                   f"kinematic_head {a['kinematic_head']} with {a['num_joints']} joints (expected "
+                                   f"{expected}); {self._fix()}")
+        if a["kinematic_head"] and a["prediction"] != "clean":
+            raise FlowWeightsError(f"{self.path}: /model has kinematic_head 1 with prediction '{a['prediction']}' "
+                                   f"(the head states the clean endpoint); {self._fix()}")
+        if a["kinematic_noise"] and not a["kinematic_head"]:
+            raise FlowWeightsError(f"{self.path}: /model has kinematic_noise 1 without kinematic_head; {self._fix()}")
         self.arch = a
         self.config = str(self._attr(f, "config", "/"))
         self.config_hash = str(self._attr(f, "config_hash", "/"))
@@ -190,7 +231,7 @@ class FlowReference:
 
         J, d, h, kt = a["num_joints"], a["width"], a["mlp_hidden"], a["temporal_kernel"]
         E, ff, Lw = a["text_width"], a["text_ff"], a["max_words"]
-        io = J * 3
+        io, out_ch = J * 3, a["out_channels"]
         shapes = {"null_text": (E,), "joint_mean": (3,), "joint_std": (3,),
                   "text.embedding.weight": (a["vocab_size"], E), "text.position.weight": (Lw, E),
                   "text.norm.weight": (E,), "text.norm.bias": (E,), "text.out.weight": (E, E), "text.out.bias": (E,)}
@@ -213,10 +254,12 @@ class FlowReference:
                        t + "final_ada.weight": (2 * d, d), t + "final_ada.bias": (2 * d,)})
         if kt == 1:
             shapes.update({t + "embed.weight": (d, io), t + "embed.bias": (d,),
-                           t + "head.weight": (io, d), t + "head.bias": (io,)})
+                           t + "head.weight": (out_ch, d), t + "head.bias": (out_ch,)})
         else:
             shapes.update({t + "embed_conv.weight": (d, io, kt), t + "embed_conv.bias": (d,),
-                           t + "head_conv.weight": (io, d, kt), t + "head_conv.bias": (io,)})
+                           t + "head_conv.weight": (out_ch, d, kt), t + "head_conv.bias": (out_ch,)})
+        if a["kinematic_head"]:
+            shapes.update({"kin_mean": (out_ch,), "kin_std": (out_ch,)})
         for i in range(a["depth"]):
             b = f"{t}blocks.{i}."
             shapes.update({b + "ada.weight": (6 * d, d), b + "ada.bias": (6 * d,),
@@ -230,8 +273,9 @@ class FlowReference:
         self.p = {}
         for name, shape in shapes.items():
             self.p[name] = self._array(w, name, shape, "/weights/")
-        if not (self.p["joint_std"] > 0).all():
-            raise FlowWeightsError(f"{self.path}: dataset '/weights/joint_std' must be positive; {self._fix()}")
+        for k in ("joint_std", "kin_std"):
+            if k in self.p and not (self.p[k] > 0).all():
+                raise FlowWeightsError(f"{self.path}: dataset '/weights/{k}' must be positive; {self._fix()}")
 
     def _array(self, group, name, shape, prefix, dtype=np.float64):
         where = prefix + name
@@ -297,8 +341,9 @@ class FlowReference:
     # -------------------------------------------------------------- network
 
     def network(self, x, t, cond, mask):
-        """The transformer's raw output [B, T, J, 3] (velocity, or the clean endpoint for a clean prior)
-        for x [B, T, J, 3] normalised, t [B], cond [B, text_width], mask [B, T] bool (valid frames)."""
+        """The transformer's raw output (velocity, or the clean endpoint for a clean prior): [B, T, J, 3], or
+        [B, T, out_channels] z-scored kinematic channels with the kinematic head, for x [B, T, J, 3]
+        normalised, t [B], cond [B, text_width], mask [B, T] bool (valid frames)."""
         p, a = self.p, self.arch
         x = np.asarray(x, np.float64)
         B, T, J, _ = x.shape
@@ -335,7 +380,29 @@ class FlowReference:
             out = linear(z, p, tr + "head")
         else:
             out = conv1d_same(z * valid[..., None], p[tr + "head_conv.weight"], p[tr + "head_conv.bias"])
-        return out.reshape(B, T, J, 3)
+        return out if a["kinematic_head"] else out.reshape(B, T, J, 3)
+
+    def clean(self, out, mask):
+        """A clean prior's output as the clean endpoint x1_hat [B, T, J, 3] in normalised units
+        (FlowPriorNetImpl::to_clean): the output itself, or the kinematic head's channels decoded."""
+        if not self.arch["kinematic_head"]:
+            return out
+        ch = out * self.p["kin_std"] + self.p["kin_mean"]
+        return self.normalize(joints_from_kinematic(ch, mask))
+
+    def draw_noise(self, rng, mask):
+        """The source noise x0 [B, T, J, 3] (FlowPriorNetImpl::draw_noise): N(0, I), or with the kinematic
+        noise i.i.d. draws in the head's channels at their std (the root-position channels times
+        sqrt(valid frames)) decoded to joints and divided by joint_std. numpy's generator, not torch's."""
+        mask = np.asarray(mask, bool)
+        B, T = mask.shape
+        J = self.arch["num_joints"]
+        if not self.arch["kinematic_noise"]:
+            return rng.standard_normal((B, T, J, 3))
+        C = self.arch["out_channels"]
+        scale = np.broadcast_to(self.p["kin_std"], (B, 1, C)).copy()
+        scale[:, :, 3:5] *= np.sqrt(np.maximum(mask.sum(1), 1)).reshape(B, 1, 1)
+        return joints_from_kinematic(rng.standard_normal((B, T, C)) * scale, mask) / self.p["joint_std"]
 
     def raw_velocity(self, x, t, text, mask):
         """One network call turned into a velocity (FlowPrior::raw_velocity)."""
@@ -344,7 +411,7 @@ class FlowReference:
             return out
         t = np.broadcast_to(np.asarray(t, np.float32).reshape(-1), (out.shape[0],)).astype(np.float64)
         gap = np.maximum(1.0 - t, self.arch["clean_gap_floor"]).reshape(-1, 1, 1, 1)
-        return (out - np.asarray(x, np.float64)) / gap
+        return (self.clean(out, mask) - np.asarray(x, np.float64)) / gap
 
     def velocity(self, x, t, text, mask, cfg_scale):
         """Classifier-free guided velocity v_u + s (v_c - v_u) (FlowPrior::velocity)."""
@@ -371,7 +438,7 @@ class FlowReference:
         if any(n < 1 or n > self.t_max for n in lengths):
             raise FlowWeightsError(f"lengths must be 1..{self.t_max} frames (the prior's t_max), got {list(lengths)}")
         mask = np.arange(T)[None, :] < np.asarray(lengths)[:, None]
-        x = np.random.default_rng(seed).standard_normal((N, T, J, 3))
+        x = self.draw_noise(np.random.default_rng(seed), mask)
         text = self.encode_captions(captions)
         grid = np.linspace(0.0, 1.0, steps + 1)
         for k in range(steps):

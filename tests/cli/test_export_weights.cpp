@@ -1,7 +1,7 @@
 // `motionctl export --format weights --probe` on flow priors of every architecture
 // switch the shipped runs do not cover (tests/tools/test_flow_reference.py checks the
 // shipped ones): clean prediction, a temporal kernel, the pretrained text encoder's
-// adapter. tools/flow_reference.py must reproduce each probe to 1e-4.
+// adapter, the kinematic head with and without its source noise. tools/flow_reference.py must reproduce each probe to 1e-4.
 #include <catch2/catch.hpp>
 
 #include "core/atomic_file.h"
@@ -17,6 +17,8 @@ TEST_CASE("export --format weights: the numpy reference reproduces every archite
   const std::vector<std::pair<std::string, std::string>> variants = {
       {"clean_kernel3", "  prediction: clean\n  loss: clean\n  temporal_kernel: 3\n"},
       {"text_adapter", "  text_encoder:\n    run_dir: runs/text/absent\n"},
+      {"kinematic_head", "  prediction: clean\n  kinematic_head:\n    enabled: true\n"},
+      {"kinematic_noise", "  prediction: clean\n  kinematic_head:\n    enabled: true\n    noise:\n      enabled: true\n"},
   };
   for (const auto& [name, extra] : variants) {
     INFO(name);
@@ -35,5 +37,13 @@ TEST_CASE("export --format weights: the numpy reference reproduces every archite
     INFO(c.output);
     CHECK(c.exit_code == 0);
     CHECK(c.output.find("OK: largest difference") != std::string::npos);
+    // The reference samples from the file alone (its own noise, with the head's channel noise where set).
+    const std::string npy = (dir.path / (name + ".npy")).string();
+    auto sm = run_shell(fmt::format("cd '{}' && '{}' tools/flow_reference.py sample '{}' --caption 'a person walks' "
+                                    "--length 12 --steps 3 --out '{}' 2>&1",
+                                    MOTIONCTL_SOURCE_DIR, MOTIONCTL_PYTHON, out, npy));
+    INFO(sm.output);
+    CHECK(sm.exit_code == 0);
+    CHECK(fs::exists(npy));
   }
 }

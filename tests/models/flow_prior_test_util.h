@@ -23,7 +23,8 @@ inline const std::vector<std::string> kPriorWordsWithNumbers = {
 
 // config.yaml, outputs/vocab.txt, outputs/prior_meta.yaml (HumanML3D skeleton, 20
 // fps, `t_max`) and checkpoints/final.pt of a depth-2, width-64 prior with N(0,
-// 0.1^2) weights drawn after torch::manual_seed(5). Another `model_type` writes a
+// 0.1^2) weights drawn after torch::manual_seed(5) (with the kinematic head, its
+// channel statistics drawn too). Another `model_type` writes a
 // config.yaml of that type only (a foreign run for the loaders' errors).
 // `model_extra` adds lines to the model section (e.g. "  prediction: clean\n").
 inline void write_random_prior_run(const fs::path& dir, int t_max = 40, const std::string& model_type = "flow_prior",
@@ -53,6 +54,10 @@ inline void write_random_prior_run(const fs::path& dir, int t_max = 40, const st
     for (auto& p : net->parameters()) p.normal_(0.0, 0.1);
     net->joint_mean.copy_(torch::tensor({0.0f, 0.9f, 0.1f}));
     net->joint_std.copy_(torch::tensor({0.5f, 0.4f, 0.8f}));
+    if (net->kinematic_head) {  // statistics a unit map would hide: the decode must use both
+      net->kin_mean.normal_(0.0, 0.1);
+      net->kin_std.uniform_(0.05, 0.5);
+    }
   }
   torch::serialize::OutputArchive ar;
   net->save(ar);

@@ -8,6 +8,7 @@
 #include "core/h5_seal.h"
 #include "models/flow_prior_test_util.h"
 #include "models/flow_weights.h"
+#include "models/kinematic_head.h"
 #include "test_util.h"
 
 using namespace mc;
@@ -88,14 +89,49 @@ TEST_CASE("flow weights: every tensor of the bundle under its module path, bit f
   }
 }
 
-TEST_CASE("flow weights: a prior with the kinematic head is refused, naming it, and nothing is written",
+TEST_CASE("flow weights: a prior with the kinematic head describes it in /model and ships its statistics",
           "[flow_weights][kinematic]") {
   TempDir dir("flow_weights_kin");
-  const fs::path run = dir.path / "prior";
-  write_random_prior_run(run, 40, "flow_prior", kPriorWords, "  prediction: clean\n  kinematic_head:\n    enabled: true\n");
-  FlowPrior prior = FlowPrior::load(run.string());
-  const std::string out = (dir.path / "w.h5").string();
-  expect_user_error([&] { write_flow_weights(prior, {run.string(), "model: {}\n", "abc123"}, out); },
-                    {"model.kinematic_head", "export a prior without it"});
-  CHECK_FALSE(fs::exists(out));
+  for (const bool noise : {false, true}) {
+    INFO("kinematic noise " << noise);
+    const fs::path run = dir.path / (noise ? "noise" : "head");
+    write_random_prior_run(run, 40, "flow_prior", kPriorWords,
+                           std::string("  prediction: clean\n  kinematic_head:\n    enabled: true\n") +
+                               (noise ? "    noise:\n      enabled: true\n" : ""));
+    FlowPrior prior = FlowPrior::load(run.string());
+    const std::string out = (dir.path / (run.filename().string() + ".h5")).string();
+    write_flow_weights(prior, {run.string(), "model: {}\n", "abc123"}, out);
+    H5::H5File f(out, H5F_ACC_RDONLY);
+    int64_t version = 0, head = -1, nz = -1, channels = 0;
+    f.openAttribute("format_version").read(H5::PredType::NATIVE_INT64, &version);
+    H5::Group m = f.openGroup("model");
+    m.openAttribute("kinematic_head").read(H5::PredType::NATIVE_INT64, &head);
+    m.openAttribute("kinematic_noise").read(H5::PredType::NATIVE_INT64, &nz);
+    m.openAttribute("out_channels").read(H5::PredType::NATIVE_INT64, &channels);
+    CHECK(version == 2);
+    CHECK(head == 1);
+    CHECK(nz == (noise ? 1 : 0));
+    CHECK(channels == kinematic_channel_count(22));  // 5 + 3 * 21, not 22 * 3
+    // The head's output layer has that many rows, and its de-z-scoring statistics are weights.
+    H5::Group w = f.openGroup("weights");
+    for (const char* name : {"transformer.head.weight", "kin_mean", "kin_std"}) {
+      INFO(name);
+      REQUIRE(w.nameExists(name));
+      std::vector<hsize_t> dims(w.openDataSet(name).getSpace().getSimpleExtentNdims());
+      w.openDataSet(name).getSpace().getSimpleExtentDims(dims.data());
+      CHECK(dims[0] == static_cast<hsize_t>(channels));
+    }
+  }
+  // A prior without the head says so too.
+  const fs::path plain = dir.path / "plain";
+  write_random_prior_run(plain, 40);
+  const std::string out = (dir.path / "plain.h5").string();
+  write_flow_weights(FlowPrior::load(plain.string()), {plain.string(), "model: {}\n", "abc123"}, out);
+  H5::H5File f(out, H5F_ACC_RDONLY);
+  int64_t head = -1, channels = 0;
+  f.openGroup("model").openAttribute("kinematic_head").read(H5::PredType::NATIVE_INT64, &head);
+  f.openGroup("model").openAttribute("out_channels").read(H5::PredType::NATIVE_INT64, &channels);
+  CHECK(head == 0);
+  CHECK(channels == 22 * 3);
+  CHECK_FALSE(f.openGroup("weights").nameExists("kin_mean"));
 }

@@ -1,6 +1,7 @@
 """A trained flow prior run from Python (issue 17): `motionctl export --format weights RUN --probe` on
-the shipped priors (flow_tiny: the jointly trained text encoder; flow_standard: a frozen text_clip
-encoder behind the text adapter), then tools/flow_reference.py (numpy only) recomputes the text
+the shipped priors (flow_tiny: the jointly trained text encoder; flow_standard_kin: a frozen text_clip
+encoder behind the text adapter and the kinematic head; flow_standard, the same encoder without the
+head, when shipped), then tools/flow_reference.py (numpy only) recomputes the text
 vectors, the conditional, unconditional and guided velocities and one Euler step of the C++ probe to
 <= 1e-4. Also: the file's layout (every tensor float32 and used by the loader, config hash, vocab,
 skeleton), byte-identical re-exports, a changed weight detected, and clear errors for a missing or
@@ -51,7 +52,7 @@ class ExportAndReference(unittest.TestCase):
     def setUpClass(cls):
         cls.tmp = tempfile.mkdtemp(prefix="flow_ref_")
         cls.files = {}
-        for prefix in ("flow_tiny", "flow_standard"):
+        for prefix in ("flow_tiny", "flow_standard", "flow_standard_kin"):
             run_dir = shipped(prefix)
             if run_dir is None:
                 continue
@@ -119,7 +120,8 @@ class ExportAndReference(unittest.TestCase):
         for name, (run_dir, path) in self.files.items():
             with self.subTest(prior=name), h5py.File(path, "r") as f:
                 self.assertEqual(f.attrs["format"], "motionctl.flow_weights")
-                self.assertEqual(int(f.attrs["format_version"]), 1)
+                self.assertEqual(int(f.attrs["format_version"]), 2)
+                self.assertEqual(int(f["model"].attrs["kinematic_head"]), int(name == "flow_standard_kin"))
                 # The config hash is the suffix of the run's default name.
                 self.assertEqual(f.attrs["config_hash"], run_dir.rsplit("-", 1)[1])
                 with open(os.path.join(run_dir, "config.yaml"), encoding="utf-8") as c:
