@@ -150,6 +150,14 @@ torch::Tensor FlowControlNet::raw_velocity(const torch::Tensor& x, const torch::
       (*branch_)->forward(*base_->net()->transformer, x, tt, text, mask, signal, control_on).velocity, x, tt, mask);
 }
 
+torch::Tensor FlowControlNet::raw_clean(const torch::Tensor& x, const torch::Tensor& t, const torch::Tensor& text,
+                                        const torch::Tensor& mask, const torch::Tensor& signal,
+                                        const torch::Tensor& control_on) const {
+  auto tt = t.to(x.device(), torch::kFloat32).reshape({-1}).expand({x.size(0)});
+  return base_->net()->to_clean(
+      (*branch_)->forward(*base_->net()->transformer, x, tt, text, mask, signal, control_on).velocity, x, tt, mask);
+}
+
 torch::Tensor FlowControlNet::velocity(const torch::Tensor& x, const torch::Tensor& t, const torch::Tensor& text,
                                        const torch::Tensor& mask, const torch::Tensor& signal, double text_cfg,
                                        double control_cfg) const {
@@ -186,23 +194,34 @@ ControlNetLosses controlnet_losses(const FlowControlNet& net, const torch::Tenso
   auto tb = t.view({-1, 1, 1, 1}).to(x1.dtype());
   auto xt = tb * x1 + (1 - tb) * x0;
   auto cm = cmask.to(x1.dtype()) * valid;
-  auto v = net.raw_velocity(xt, t, text, mask, control_signal(x1, cm), control_on);
-  ControlNetLosses out;
-  out.fm = ((v - (x1 - x0)).pow(2) * valid).sum() /
-           ((fm_count.defined() ? fm_count : valid.sum()) * x1.size(2) * 3 + 1e-8);
-  // ACMDM's clean estimate x0 + v uses the training noise: its error v - (x1 - x0)
-  // carries the same weight at every t. x_t + (1 - t) v (what a sampler can form)
-  // has (1 - t) times that error, so with it the branch gets almost no control
-  // supervision near t = 1 (the loss shrinks by (1 - t)^2).
-  torch::Tensor x1_hat;
-  if (weighting == "none")
-    x1_hat = x0 + v;
-  else if (weighting == "one_minus_t_sq")
-    x1_hat = xt + (1 - tb) * v;
-  else
+  if (weighting != "none" && weighting != "one_minus_t_sq")
     fail("model.control_loss_weighting '{}' is unknown; use none or one_minus_t_sq", weighting);
+  // The velocity error v - (x1 - x0), as the base prior's own training loss forms it.
+  // For a velocity network that is the output's error. For a clean-endpoint network
+  // (v = (x1_hat - x_t) / (1 - t)) it is (x1_hat - x1) / (1 - t), whose weight is
+  // unbounded near t = 1: the base prior floors 1 - t at its clean_eps there
+  // (flow_prior.cpp), and so does the branch; without the floor single samples at
+  // t ~ 1 carried losses of 10^2-10^3 and dominated the clipped gradient (measured
+  // on flow_standard_kin: loss spikes of 62 and 459, dense control error 0.94 m
+  // against the unconstrained prior's 1.15 m).
+  // ACMDM's clean estimate x0 + v uses the training noise: its error x0 + v - x1 is
+  // the velocity error, with the same weight at every t. x_t + (1 - t) v (what a
+  // sampler can form) has (1 - t) times that error, so with it the branch gets almost
+  // no control supervision near t = 1 (the loss shrinks by (1 - t)^2).
+  torch::Tensor v_err, ctrl_err;
+  if (net.base().net()->clean_prediction) {
+    auto x1_hat = net.raw_clean(xt, t, text, mask, control_signal(x1, cm), control_on);
+    v_err = (x1_hat - x1) / (1 - tb).clamp_min(net.base().config().clean_eps);
+    ctrl_err = weighting == "none" ? v_err : x1_hat - x1;
+  } else {
+    auto v = net.raw_velocity(xt, t, text, mask, control_signal(x1, cm), control_on);
+    v_err = v - (x1 - x0);
+    ctrl_err = weighting == "none" ? x0 + v - x1 : xt + (1 - tb) * v - x1;
+  }
+  ControlNetLosses out;
+  out.fm = (v_err.pow(2) * valid).sum() / ((fm_count.defined() ? fm_count : valid.sum()) * x1.size(2) * 3 + 1e-8);
   if (control_on.defined()) cm = cm * control_on.to(x1.device(), x1.dtype()).view({B, 1, 1, 1});
-  out.ctrl = ((x1_hat - x1).pow(2) * cm).sum() / ((ctrl_count.defined() ? ctrl_count : cm.sum()) + 1e-8);
+  out.ctrl = (ctrl_err.pow(2) * cm).sum() / ((ctrl_count.defined() ? ctrl_count : cm.sum()) + 1e-8);
   return out;
 }
 

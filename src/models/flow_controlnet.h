@@ -98,6 +98,11 @@ class FlowControlNet {
   torch::Tensor raw_velocity(const torch::Tensor& x, const torch::Tensor& t, const torch::Tensor& text,
                              const torch::Tensor& mask, const torch::Tensor& signal,
                              const torch::Tensor& control_on = {}) const;
+  // The same call as the clean endpoint x1_hat (the base's to_clean): exact at every t
+  // for a clean-endpoint base, x + (1 - t) v for a velocity one.
+  torch::Tensor raw_clean(const torch::Tensor& x, const torch::Tensor& t, const torch::Tensor& text,
+                          const torch::Tensor& mask, const torch::Tensor& signal,
+                          const torch::Tensor& control_on = {}) const;
   // ACMDM's three-pass guidance (models/ACMDM_ControlNet.py, forward_with_control):
   // passes (text, control), (null text, control) and (text, no control), all through
   // base + branch, combined as

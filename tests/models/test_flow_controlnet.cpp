@@ -256,6 +256,60 @@ TEST_CASE("ControlNet control loss: on the clean estimate x0 + v, it does not va
         Approx(((x0 + v_on - x1).pow(2) * cm_on).sum().item<double>() / cm_on.sum().item<double>()).epsilon(1e-4));
 }
 
+TEST_CASE("ControlNet losses on a clean-endpoint base: the base's velocity error with its clean_eps floor",
+          "[controlnet][kinematic]") {
+  // With the kinematic head and without: both state the clean endpoint.
+  for (const std::string extra : {std::string("  prediction: clean\n"),
+                                  std::string("  prediction: clean\n  kinematic_head:\n    enabled: true\n")}) {
+    INFO(extra);
+    TempDir dir("cn_loss_clean");
+    write_random_prior_run(dir.path, 40, "flow_prior", kPriorWordsWithNumbers, extra);
+    FlowControlNet net = FlowControlNet::around(FlowPrior::load(dir.path.string()));
+    const double eps = net.base().config().clean_eps;
+    REQUIRE(eps == 0.05);
+    torch::manual_seed(4);
+    const int64_t B = 3, T = 24;
+    auto x1 = torch::randn({B, T, 22, 3});
+    auto x0 = torch::randn({B, T, 22, 3});
+    auto mask = torch::ones({B, T}, torch::kBool);
+    mask[2].narrow(0, 18, 6).fill_(false);
+    x1 = x1 * mask.view({B, T, 1, 1}).to(torch::kFloat32);
+    auto cmask = (torch::rand({B, T, 22, 3}) < 0.2).to(torch::kFloat32);
+    auto text = net.base().encode_texts({"a person walks", "a person jumps", "forward"});
+    auto valid = mask.view({B, T, 1, 1}).to(torch::kFloat32);
+    auto cm = cmask * valid;
+    torch::NoGradGuard ng;
+    for (const double tv : {0.3, 0.97, 1.0 - 1e-7}) {
+      INFO("t = " << tv);
+      auto t = torch::full({B}, tv);
+      auto xt = tv * x1 + (1 - tv) * x0;
+      // The branch's clean endpoint, and the same read off its velocity where 1 - t >= 1e-6.
+      auto x1_hat = net.raw_clean(xt, t, text, mask, control_signal(x1, cm));
+      if (1 - tv >= 1e-6)
+        CHECK(torch::allclose(xt + (1 - tv) * net.raw_velocity(xt, t, text, mask, control_signal(x1, cm)), x1_hat,
+                              1e-3, 1e-4));
+      auto v_err = (x1_hat - x1) / std::max(1 - tv, eps);
+      const double fm = (v_err.pow(2) * valid).sum().item<double>() / (valid.sum().item<double>() * 66);
+      const double ctrl = (v_err.pow(2) * cm).sum().item<double>() / cm.sum().item<double>();
+      auto l = controlnet_losses(net, x1, x0, t, text, mask, cmask, {}, "none");
+      CHECK(l.fm.item<double>() == Approx(fm).epsilon(1e-3));
+      CHECK(l.ctrl.item<double>() == Approx(ctrl).epsilon(1e-3));
+      // (1 - t)^2 weighting: the clean endpoint's own error.
+      const double ctrl_sq = ((x1_hat - x1).pow(2) * cm).sum().item<double>() / cm.sum().item<double>();
+      CHECK(controlnet_losses(net, x1, x0, t, text, mask, cmask, {}, "one_minus_t_sq").ctrl.item<double>() ==
+            Approx(ctrl_sq).epsilon(1e-3));
+    }
+    // Bounded at t -> 1: at most 1 / eps^2 = 400 times the clean error, where the raw
+    // velocity error (x0 + v - x1, no floor) would be 10^14 times it.
+    auto t1 = torch::full({B}, 1.0 - 1e-7);
+    const double near_one = controlnet_losses(net, x1, x0, t1, text, mask, cmask, {}, "none").fm.item<double>();
+    const double mid = controlnet_losses(net, x1, x0, torch::full({B}, 1.0 - eps), text, mask, cmask, {}, "none")
+                           .fm.item<double>();
+    CHECK(std::isfinite(near_one));
+    CHECK(near_one < 10 * mid);
+  }
+}
+
 TEST_CASE("ControlNet pelvis-only model: configs and training masks control joint 0 alone", "[controlnet]") {
   for (const char* f : {"configs/prior/flow_controlnet_pelvis_tiny.yaml",
                         "configs/prior/flow_controlnet_pelvis_standard.yaml",
