@@ -146,16 +146,20 @@ torch::Tensor FlowControlNet::raw_velocity(const torch::Tensor& x, const torch::
   auto tt = t.to(x.device(), torch::kFloat32).reshape({-1}).expand({x.size(0)});
   // The branch adds to the base's blocks, so its output is in the base's
   // parametrisation (velocity or clean endpoint): convert like the base does.
-  return base_->net()->to_velocity(
-      (*branch_)->forward(*base_->net()->transformer, x, tt, text, mask, signal, control_on).velocity, x, tt, mask);
+  return base_->net()->to_velocity(branch_output(x, tt, text, mask, signal, control_on), x, tt, mask);
 }
 
 torch::Tensor FlowControlNet::raw_clean(const torch::Tensor& x, const torch::Tensor& t, const torch::Tensor& text,
                                         const torch::Tensor& mask, const torch::Tensor& signal,
                                         const torch::Tensor& control_on) const {
   auto tt = t.to(x.device(), torch::kFloat32).reshape({-1}).expand({x.size(0)});
-  return base_->net()->to_clean(
-      (*branch_)->forward(*base_->net()->transformer, x, tt, text, mask, signal, control_on).velocity, x, tt, mask);
+  return base_->net()->to_clean(branch_output(x, tt, text, mask, signal, control_on), x, tt, mask);
+}
+
+torch::Tensor FlowControlNet::branch_output(const torch::Tensor& x, const torch::Tensor& tt, const torch::Tensor& text,
+                                            const torch::Tensor& mask, const torch::Tensor& signal,
+                                            const torch::Tensor& control_on) const {
+  return (*branch_)->forward(*base_->net()->transformer, x, tt, text, mask, signal, control_on).velocity;
 }
 
 torch::Tensor FlowControlNet::velocity(const torch::Tensor& x, const torch::Tensor& t, const torch::Tensor& text,
@@ -204,6 +208,7 @@ ControlNetLosses controlnet_losses(const FlowControlNet& net, const torch::Tenso
   // t ~ 1 carried losses of 10^2-10^3 and dominated the clipped gradient (measured
   // on flow_standard_kin: loss spikes of 62 and 459, dense control error 0.94 m
   // against the unconstrained prior's 1.15 m).
+  //
   // ACMDM's clean estimate x0 + v uses the training noise: its error x0 + v - x1 is
   // the velocity error, with the same weight at every t. x_t + (1 - t) v (what a
   // sampler can form) has (1 - t) times that error, so with it the branch gets almost

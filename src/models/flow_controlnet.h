@@ -117,6 +117,11 @@ class FlowControlNet {
   const std::string& run_dir() const { return run_dir_; }
 
  private:
+  // One base + branch call at per-sample times tt [B]: the base's raw output
+  // (velocity or clean endpoint, in the base's parametrisation).
+  torch::Tensor branch_output(const torch::Tensor& x, const torch::Tensor& tt, const torch::Tensor& text,
+                              const torch::Tensor& mask, const torch::Tensor& signal,
+                              const torch::Tensor& control_on) const;
   std::shared_ptr<FlowPrior> base_;
   std::shared_ptr<FlowControlBranch> branch_;
   std::string run_dir_;

@@ -11,7 +11,6 @@
 #include "core/h5_handle.h"
 #include "core/h5_seal.h"
 #include "data/skeleton.h"
-#include "models/kinematic_head.h"
 
 namespace mc {
 namespace {
@@ -192,12 +191,12 @@ void write_flow_weights(const FlowPrior& prior, const FlowWeightsSource& source,
       w.attr_double(m, "layer_norm_eps", 1e-5);  // torch's LayerNorm default, every LayerNorm of the bundle
       w.attr_int(m, "text_adapter", net.text_adapter ? 1 : 0);
       // Version 2: the kinematic head (models/kinematic_head.h). With it the head
-      // writes kinematic_channels channels per frame (/weights/kin_mean, kin_std
-      // de-z-score them) that the fixed linear map decodes to joints; with its noise
+      // writes out_channels kinematic channels per frame (/weights/kin_mean, kin_std
+      // de-z-score them) that a fixed linear map decodes to joints; with its noise
       // the source noise is drawn in those channels (docs/formats.md).
       w.attr_int(m, "kinematic_head", net.kinematic_head ? 1 : 0);
       w.attr_int(m, "kinematic_noise", net.kinematic_noise ? 1 : 0);
-      w.attr_int(m, "out_channels", net.kinematic_head ? kinematic_channel_count(o.num_joints) : o.num_joints * 3);
+      w.attr_int(m, "out_channels", o.resolved_out_channels());
     }
     w.strings(root, "vocab", prior.vocab().words());
     {

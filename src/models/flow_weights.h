@@ -17,7 +17,7 @@ namespace mc {
 
 inline constexpr const char* kFlowWeightsFormat = "motionctl.flow_weights";
 // 2: /model gains kinematic_head, kinematic_noise and out_channels (a version-1 file has
-// neither: its head writes num_joints * 3 channels).
+// none of them: its head writes num_joints * 3 channels).
 inline constexpr int64_t kFlowWeightsVersion = 2;
 
 // Where the weights came from (root attributes of the file).
