@@ -48,10 +48,13 @@ torch::Tensor random_control_mask(const std::vector<int64_t>& lengths, int64_t T
 
 // ---------------------------------------------------------------- branch
 
-FlowControlBranchImpl::FlowControlBranchImpl(const FlowTransformerOptions& o) : opt(o) {
+FlowControlBranchImpl::FlowControlBranchImpl(const FlowTransformerOptions& o, bool signal_norm, bool residual_head)
+    : opt(o) {
   const int64_t d = o.width;
   signal_embed = register_module(
       "signal_embed", nn::Sequential(nn::Linear(o.num_joints * 6, d), nn::SiLU(), nn::Linear(d, d)));
+  if (signal_norm) signal_gain = register_parameter("signal_gain", torch::ones({d}));
+  if (residual_head) residual_out = register_module("residual_out", nn::Linear(d, o.num_joints * 3));
   signal_zero = register_module("signal_zero", nn::Linear(d, d));
   blocks = register_module("blocks", nn::ModuleList());
   zero_out = register_module("zero_out", nn::ModuleList());
@@ -73,6 +76,10 @@ FlowControlBranchImpl::FlowControlBranchImpl(const FlowTransformerOptions& o) : 
     nn::init::zeros_(lin->weight);
     nn::init::zeros_(lin->bias);
   }
+  if (residual_out) {
+    nn::init::zeros_(residual_out->weight);
+    nn::init::zeros_(residual_out->bias);
+  }
 }
 
 void FlowControlBranchImpl::copy_blocks_from(FlowTransformerImpl& base) {
@@ -86,7 +93,7 @@ void FlowControlBranchImpl::copy_blocks_from(FlowTransformerImpl& base) {
   }
 }
 
-FlowTransformerOutput FlowControlBranchImpl::forward(FlowTransformerImpl& base, const torch::Tensor& x,
+FlowControlBranchImpl::Output FlowControlBranchImpl::forward(FlowTransformerImpl& base, const torch::Tensor& x,
                                                      const torch::Tensor& t, const torch::Tensor& cond,
                                                      const torch::Tensor& mask, const torch::Tensor& signal,
                                                      const torch::Tensor& control_on) {
@@ -99,7 +106,10 @@ FlowTransformerOutput FlowControlBranchImpl::forward(FlowTransformerImpl& base, 
   auto c = base.conditioning(t.to(x.device()).expand({B}), cond);
   auto key_valid = mask.to(x.device(), torch::kBool);
   auto h = base.embed_tokens(x, key_valid);
-  auto ctrl = signal_zero(signal_embed->forward(signal.to(x.dtype()).reshape({B, T, J * 6})));
+  auto emb = signal_embed->forward(signal.to(x.dtype()).reshape({B, T, J * 6}));
+  if (signal_gain.defined())  // ACMDM's RMSNorm (eps 1e-6) before the zero linear
+    emb = emb * torch::rsqrt(emb.pow(2).mean(-1, true) + 1e-6) * signal_gain;
+  auto ctrl = signal_zero(emb);
   if (control_on.defined()) {
     TORCH_CHECK(control_on.numel() == B, "control_on needs one entry per sample (", B, "), got ", control_on.numel());
     ctrl = ctrl * control_on.to(x.device(), x.dtype()).view({B, 1, 1});
@@ -110,16 +120,18 @@ FlowTransformerOutput FlowControlBranchImpl::forward(FlowTransformerImpl& base, 
     hc = blocks[i]->as<FlowBlockImpl>()->forward(hc, c, key_valid, pos);
     h = h + zero_out[i]->as<nn::Linear>()->forward(hc);
   }
-  return {base.output(h, c, key_valid)};
+  Output out{base.output(h, c, key_valid), {}};
+  if (residual_out) out.residual = residual_out(hc).view({B, T, J, 3});
+  return out;
 }
 
 // ---------------------------------------------------------------- runtime
 
-FlowControlNet FlowControlNet::around(FlowPrior base) {
+FlowControlNet FlowControlNet::around(FlowPrior base, bool signal_norm, bool residual_head) {
   FlowControlNet n;
   n.base_ = std::make_shared<FlowPrior>(std::move(base));
   auto& tr = *n.base_->net()->transformer;
-  n.branch_ = std::make_shared<FlowControlBranch>(tr.opt);
+  n.branch_ = std::make_shared<FlowControlBranch>(tr.opt, signal_norm, residual_head);
   (*n.branch_)->copy_blocks_from(tr);
   (*n.branch_)->to(n.base_->device());
   for (auto& p : n.base_->net()->parameters()) p.set_requires_grad(false);
@@ -131,8 +143,13 @@ FlowControlNet FlowControlNet::load(const std::string& run_dir, torch::Device de
       run_dir, {"ControlNet", {"flow_controlnet"}, {"controlnet_meta.yaml"},
                 "train one with `motionctl train configs/prior/flow_controlnet_tiny.yaml`"});
   std::string base_run;
-  run.read_meta("controlnet_meta.yaml", [&](const YAML::Node& meta) { base_run = run.dependency(meta["base_run"].as<std::string>()); });
-  FlowControlNet n = around(FlowPrior::load(base_run, device));
+  bool signal_norm = false, residual_head = false;  // absent in runs trained before model.signal
+  run.read_meta("controlnet_meta.yaml", [&](const YAML::Node& meta) {
+    base_run = run.dependency(meta["base_run"].as<std::string>());
+    if (meta["signal_norm"]) signal_norm = meta["signal_norm"].as<bool>();
+    if (meta["residual_head"]) residual_head = meta["residual_head"].as<bool>();
+  });
+  FlowControlNet n = around(FlowPrior::load(base_run, device), signal_norm, residual_head);
   n.run_dir_ = run_dir;
   run.load_weights(**n.branch_, fmt::format("its base prior '{}'", base_run));
   (*n.branch_)->to(device);
@@ -144,22 +161,33 @@ torch::Tensor FlowControlNet::raw_velocity(const torch::Tensor& x, const torch::
                                            const torch::Tensor& mask, const torch::Tensor& signal,
                                            const torch::Tensor& control_on) const {
   auto tt = t.to(x.device(), torch::kFloat32).reshape({-1}).expand({x.size(0)});
+  const auto& net = *base_->net();
   // The branch adds to the base's blocks, so its output is in the base's
-  // parametrisation (velocity or clean endpoint): convert like the base does.
-  return base_->net()->to_velocity(branch_output(x, tt, text, mask, signal, control_on), x, tt, mask);
+  // parametrisation (velocity or clean endpoint): convert like the base does. The
+  // residual head adds on the clean estimate (clean base) or the velocity.
+  auto o = branch_output(x, tt, text, mask, signal, control_on);
+  if (!o.residual.defined()) return net.to_velocity(o.base_out, x, tt, mask);
+  if (!net.clean_prediction) return o.base_out + o.residual;
+  auto gap = (1 - tt.to(x.device(), x.scalar_type())).clamp_min(1e-6).view({-1, 1, 1, 1});  // as to_velocity
+  return (net.to_clean(o.base_out, x, tt, mask) + o.residual - x) / gap;
 }
 
 torch::Tensor FlowControlNet::raw_clean(const torch::Tensor& x, const torch::Tensor& t, const torch::Tensor& text,
                                         const torch::Tensor& mask, const torch::Tensor& signal,
                                         const torch::Tensor& control_on) const {
   auto tt = t.to(x.device(), torch::kFloat32).reshape({-1}).expand({x.size(0)});
-  return base_->net()->to_clean(branch_output(x, tt, text, mask, signal, control_on), x, tt, mask);
+  const auto& net = *base_->net();
+  auto o = branch_output(x, tt, text, mask, signal, control_on);
+  if (!o.residual.defined()) return net.to_clean(o.base_out, x, tt, mask);
+  if (net.clean_prediction) return net.to_clean(o.base_out, x, tt, mask) + o.residual;
+  return net.to_clean(o.base_out + o.residual, x, tt, mask);  // x + (1 - t) v on the summed velocity
 }
 
-torch::Tensor FlowControlNet::branch_output(const torch::Tensor& x, const torch::Tensor& tt, const torch::Tensor& text,
-                                            const torch::Tensor& mask, const torch::Tensor& signal,
-                                            const torch::Tensor& control_on) const {
-  return (*branch_)->forward(*base_->net()->transformer, x, tt, text, mask, signal, control_on).velocity;
+FlowControlBranchImpl::Output FlowControlNet::branch_output(const torch::Tensor& x, const torch::Tensor& tt,
+                                                            const torch::Tensor& text, const torch::Tensor& mask,
+                                                            const torch::Tensor& signal,
+                                                            const torch::Tensor& control_on) const {
+  return (*branch_)->forward(*base_->net()->transformer, x, tt, text, mask, signal, control_on);
 }
 
 torch::Tensor FlowControlNet::velocity(const torch::Tensor& x, const torch::Tensor& t, const torch::Tensor& text,
@@ -225,6 +253,7 @@ ControlNetLosses controlnet_losses(const FlowControlNet& net, const torch::Tenso
   }
   ControlNetLosses out;
   out.fm = (v_err.pow(2) * valid).sum() / ((fm_count.defined() ? fm_count : valid.sum()) * x1.size(2) * 3 + 1e-8);
+  out.ctrl_every = (ctrl_err.pow(2) * cm).sum() / (cm.sum() + 1e-8);
   if (control_on.defined()) cm = cm * control_on.to(x1.device(), x1.dtype()).view({B, 1, 1, 1});
   out.ctrl = (ctrl_err.pow(2) * cm).sum() / ((ctrl_count.defined() ? ctrl_count : cm.sum()) + 1e-8);
   return out;
@@ -238,7 +267,7 @@ class FlowControlNetTrainer : public Trainable {
  public:
   FlowControlNetTrainer(const FlowControlNetConfig& c, const TrainContext& ctx) : cfg_(c), ctx_(ctx) {
     base_run_ = c.base.run();  // trained first by the job when named by its config
-    net_ = FlowControlNet::around(FlowPrior::load(base_run_, ctx.device));
+    net_ = FlowControlNet::around(FlowPrior::load(base_run_, ctx.device), c.signal.norm, c.signal.residual_head);
     const FlowPrior& base = net_.base();
     if (base.num_joints() != ctx.data->num_joints())
       fail("model.base '{}' has {} joints but data '{}' has {}; train the ControlNet on the base's skeleton",
@@ -283,25 +312,38 @@ class FlowControlNetTrainer : public Trainable {
     net_.branch()->eval();
     auto gen = at::make_generator<at::CPUGeneratorImpl>(20240612);
     // Weighted by clips: each loss is already a mean over its chunk.
+    // Each chunk runs twice on the same draws: with the control, and with the branch's
+    // control off (ACMDM's "no control" pass). val_ctrl below val_ctrl_off is the branch
+    // using its signal; equal, it has learned nothing from it (as AnchorKV's
+    // zeroed-feature twin tells for the adapters).
     auto chunk_values = [&](double tv, const std::vector<int64_t>& chunk) {
       FlowValidationInputs in = flow_validation_inputs(*ctx_.data, chunk, tv, gen, ctx_.device, &*net_.base().net());
-      auto p = losses(in.batch, in.captions, in.x0, in.t, in.drop, control_mask(in.batch, gen), {}, {}, {});
-      return ChunkValues{{p.fm.item<double>(), p.ctrl.item<double>()}, static_cast<double>(chunk.size())};
+      auto cmask = control_mask(in.batch, gen);
+      auto p = losses(in.batch, in.captions, in.x0, in.t, in.drop, cmask, {}, {}, {});
+      auto off = torch::zeros({in.batch.mask.size(0)}, torch::TensorOptions().device(ctx_.device));
+      auto p_off = losses(in.batch, in.captions, in.x0, in.t, in.drop, cmask, off, {}, {});
+      return ChunkValues{{p.fm.item<double>(), p.ctrl.item<double>(), p_off.ctrl_every.item<double>()},
+                         static_cast<double>(chunk.size())};
     };
-    const TimedValidation v = validate_at_times(cfg_.eval_t, ctx_.data->split("val"), 32, 2, chunk_values);
+    const TimedValidation v = validate_at_times(cfg_.eval_t, ctx_.data->split("val"), 32, 3, chunk_values);
     std::map<std::string, double> out;
     for (size_t k = 0; k < cfg_.eval_t.size(); ++k) {
       out[fmt::format("val_fm_t{:.2f}", cfg_.eval_t[k])] = v.at_time[k][0];
       out[fmt::format("val_ctrl_t{:.2f}", cfg_.eval_t[k])] = v.at_time[k][1];
+      out[fmt::format("val_ctrl_off_t{:.2f}", cfg_.eval_t[k])] = v.at_time[k][2];
     }
     out["val_fm"] = v.mean[0];
     out["val_ctrl"] = v.mean[1];
+    out["val_ctrl_off"] = v.mean[2];
     return out;
   }
 
   void save_artifacts(const fs::path& outputs) override {
     YAML::Emitter e;
-    e << YAML::BeginMap << YAML::Key << "base_run" << YAML::Value << base_run_ << YAML::EndMap;
+    e << YAML::BeginMap << YAML::Key << "base_run" << YAML::Value << base_run_;
+    if (cfg_.signal.norm) e << YAML::Key << "signal_norm" << YAML::Value << true;  // absent: off
+    if (cfg_.signal.residual_head) e << YAML::Key << "residual_head" << YAML::Value << true;
+    e << YAML::EndMap;
     write_file_atomic(outputs / "controlnet_meta.yaml", std::string(e.c_str()) + "\n");
   }
 

@@ -12,6 +12,29 @@
 
 namespace mc {
 
+// How the control signal enters the copy (`model.signal`). Off by default and then
+// absent from the dump, so ControlNets trained before it keep their names.
+struct ControlSignalConfig : Config {
+  // ACMDM's c_control_embedder ends in an RMSNorm before its zero linear: every
+  // controlled frame's embedding has unit RMS however few of its entries are set.
+  bool norm = false;
+  // Ours: a zero-initialised Linear from the copy's last hidden state straight to a
+  // per-frame residual on the normalised absolute joints of the clean estimate (on the
+  // velocity for a velocity base). A kinematic-head base states the root as a running
+  // sum of per-frame steps, so moving one frame's pelvis through the hidden stream needs
+  // every earlier frame's step to change; this path reaches frame f's joints from frame f.
+  bool residual_head = false;
+  void visit(FieldVisitor& v) override {
+    v("norm", norm,
+      "RMS-normalise the signal embedding (learned gain) before its zero-initialised Linear, as ACMDM's "
+      "control embedder");
+    v("residual_head", residual_head,
+      "add a zero-initialised per-frame residual on the absolute joints of the output, read from the copy's "
+      "last hidden state (ours; ACMDM adds to the hidden stream only)");
+  }
+  bool omitted_from_dump() const override { return !norm && !residual_head; }
+};
+
 struct FlowControlNetConfig : Config {
   PriorSourceConfig base;  // the finished flow prior it controls (frozen)
   std::vector<int> control_joints = {0, 10, 11, 15, 20, 21};
@@ -21,6 +44,7 @@ struct FlowControlNetConfig : Config {
   double control_drop = 0.1;         // control dropout: teaches the branch the "no control" pass of the CFG
   int min_controlled_frames = 1;     // controlled frames per sample: log-uniform in [this, clip length]
   std::vector<double> eval_t = {0.1, 0.5, 0.9};
+  ControlSignalConfig signal;
   void visit(FieldVisitor& v) override {
     v("base", base, "the frozen base flow prior (run_dir, or its training config trained on demand)");
     v("control_joints", control_joints, "each training sample controls one joint drawn from this list",
@@ -40,6 +64,7 @@ struct FlowControlNetConfig : Config {
       "fewest controlled frames per sample; the count is log-uniform between this and the clip length",
       at_least(1));
     v("eval_t", eval_t, "flow times of the validation losses", each(in_range(0.0, 1.0)));
+    v("signal", signal, "how the control signal enters the copy (off: ours, no normalisation)");
   }
   std::string validate() const override {
     if (control_joints.empty()) return "control_joints needs at least one joint";
@@ -65,7 +90,10 @@ torch::Tensor random_control_mask(const std::vector<int64_t>& lengths, int64_t T
 // zero-initialised Linear. The base itself is not a submodule (it stays frozen
 // and is not saved with the branch).
 struct FlowControlBranchImpl : torch::nn::Module {
-  explicit FlowControlBranchImpl(const FlowTransformerOptions& o);
+  // signal_norm / residual_head: ControlSignalConfig (they add the `signal_gain` and
+  // `residual_out` parameters).
+  explicit FlowControlBranchImpl(const FlowTransformerOptions& o, bool signal_norm = false,
+                                 bool residual_head = false);
   // Initialises the copied blocks from the base's (the zero linears stay zero).
   void copy_blocks_from(FlowTransformerImpl& base);
   // Velocity of base + branch: h_i = base_i(h_{i-1}) + zero_i(copy_i(hc_{i-1})),
@@ -73,13 +101,19 @@ struct FlowControlBranchImpl : torch::nn::Module {
   // conditioning and head are used as they are. Arguments as FlowTransformer::forward,
   // signal [B, T, J, 6] from control_signal(); control_on [B] (1 = control, 0 = the
   // branch runs without it, ACMDM's "no control"; undefined = all 1).
-  FlowTransformerOutput forward(FlowTransformerImpl& base, const torch::Tensor& x, const torch::Tensor& t,
+  struct Output {
+    torch::Tensor base_out;  // the base's raw output (its parametrisation) with the branch's additions
+    torch::Tensor residual;  // residual_head: [B, T, J, 3] on normalised absolute joints; else undefined
+  };
+  Output forward(FlowTransformerImpl& base, const torch::Tensor& x, const torch::Tensor& t,
                                 const torch::Tensor& cond, const torch::Tensor& mask, const torch::Tensor& signal,
                                 const torch::Tensor& control_on = {});
 
   FlowTransformerOptions opt;
   torch::nn::Sequential signal_embed{nullptr};  // J*6 -> d -> SiLU -> d
   torch::nn::Linear signal_zero{nullptr};       // d -> d, zero-init
+  torch::Tensor signal_gain;                    // [d] RMSNorm gain (signal_norm only)
+  torch::nn::Linear residual_out{nullptr};      // d -> J*3, zero-init (residual_head only)
   torch::nn::ModuleList blocks{nullptr};        // copies of the base blocks
   torch::nn::ModuleList zero_out{nullptr};      // one d -> d zero-init Linear per block
 };
@@ -91,7 +125,7 @@ class FlowControlNet {
  public:
   static FlowControlNet load(const std::string& run_dir, torch::Device device = torch::kCPU);
   // Builds base + freshly initialised branch (zero linears) around a loaded base.
-  static FlowControlNet around(FlowPrior base);
+  static FlowControlNet around(FlowPrior base, bool signal_norm = false, bool residual_head = false);
 
   // One network call of base + branch (text or null text), no guidance; control_on
   // as FlowControlBranchImpl::forward.
@@ -118,8 +152,8 @@ class FlowControlNet {
 
  private:
   // One base + branch call at per-sample times tt [B]: the base's raw output
-  // (velocity or clean endpoint, in the base's parametrisation).
-  torch::Tensor branch_output(const torch::Tensor& x, const torch::Tensor& tt, const torch::Tensor& text,
+  // (velocity or clean endpoint, in the base's parametrisation) and the residual head's.
+  FlowControlBranchImpl::Output branch_output(const torch::Tensor& x, const torch::Tensor& tt, const torch::Tensor& text,
                               const torch::Tensor& mask, const torch::Tensor& signal,
                               const torch::Tensor& control_on) const;
   std::shared_ptr<FlowPrior> base_;
@@ -136,6 +170,9 @@ class FlowControlNet {
 struct ControlNetLosses {
   torch::Tensor fm;    // flow matching: mean ||v - (x1 - x0)||^2 over valid entries
   torch::Tensor ctrl;  // mean ||x1_hat - x1||^2 over the controlled entries
+  // The same mean over the controlled entries of every sample, its control on or off
+  // (ctrl leaves out samples whose control is off): the validation's "signal off" error.
+  torch::Tensor ctrl_every;
 };
 ControlNetLosses controlnet_losses(const FlowControlNet& net, const torch::Tensor& x1, const torch::Tensor& x0,
                                    const torch::Tensor& t, const torch::Tensor& text, const torch::Tensor& mask,

@@ -61,7 +61,13 @@ MotionSet random_set(const std::vector<int>& lengths, unsigned seed) {
 TEST_CASE("ControlNet: zero-initialised branch gives exactly the base's velocity", "[controlnet]") {
   TempDir dir("cn_zero");
   write_random_prior_run(dir.path, 40, "flow_prior", kPriorWordsWithNumbers);
-  FlowControlNet net = FlowControlNet::around(FlowPrior::load(dir.path.string()));
+  // Ours; with ACMDM's RMS-normalised signal embedding (model.signal.norm); with the
+  // zero-initialised residual head on the output joints (model.signal.residual_head).
+  const int variant = GENERATE(0, 1, 2);
+  const bool signal_norm = variant == 1, residual_head = variant == 2;
+  FlowControlNet net = FlowControlNet::around(FlowPrior::load(dir.path.string()), signal_norm, residual_head);
+  CHECK(net.branch()->signal_gain.defined() == signal_norm);
+  CHECK(!net.branch()->residual_out.is_empty() == residual_head);
   const FlowPrior& base = net.base();
   torch::manual_seed(2);
   const int64_t B = 3, T = 30;
@@ -254,6 +260,9 @@ TEST_CASE("ControlNet control loss: on the clean estimate x0 + v, it does not va
   auto v_on = net.raw_velocity(xt, t, text, mask, control_signal(x1, cm), on);
   CHECK(part ==
         Approx(((x0 + v_on - x1).pow(2) * cm_on).sum().item<double>() / cm_on.sum().item<double>()).epsilon(1e-4));
+  // ctrl_every counts them (the validation's "control off" error), from the same call.
+  auto every = controlnet_losses(net, x1, x0, t, text, mask, cmask, on, "none").ctrl_every.item<double>();
+  CHECK(every == Approx(((x0 + v_on - x1).pow(2) * cm).sum().item<double>() / cm.sum().item<double>()).epsilon(1e-4));
 }
 
 TEST_CASE("ControlNet losses on a clean-endpoint base: the base's velocity error with its clean_eps floor",
@@ -375,6 +384,11 @@ TEST_CASE("ControlNet training: a short real run lowers the validation control l
   INFO("val_ctrl " << step0["val_ctrl"] << " -> " << r.summary["val_ctrl"] << "; val_fm " << step0["val_fm"] << " -> "
                    << r.summary["val_fm"]);
   CHECK(r.summary["val_ctrl"] < 0.9 * step0["val_ctrl"]);
+  // The zero-initialised branch is the base with the control on or off; the trained one
+  // is closer to the targets with its signal than without it.
+  CHECK(step0["val_ctrl_off"] == Approx(step0["val_ctrl"]).epsilon(1e-5));
+  INFO("trained: val_ctrl " << r.summary["val_ctrl"] << ", with the control off " << r.summary["val_ctrl_off"]);
+  CHECK(r.summary["val_ctrl"] < r.summary["val_ctrl_off"]);
   // It falls faster than the flow loss: the branch uses the signal, not just its extra capacity.
   CHECK(r.summary["val_ctrl"] / step0["val_ctrl"] < r.summary["val_fm"] / step0["val_fm"]);
 }

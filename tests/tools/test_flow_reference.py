@@ -176,6 +176,30 @@ class ExportAndReference(unittest.TestCase):
         with self.assertRaisesRegex(FlowWeightsError, r"'/weights/null_text' holds non-finite values"):
             FlowReference(path)
 
+    def test_inconsistent_kinematic_attributes_are_refused(self):
+        """Version 2's head attributes must agree with each other and with the layout."""
+        if "flow_standard_kin" not in self.files:
+            self.skipTest("pretrained/prior/flow_standard_kin-<hash> is not shipped")
+        cases = [
+            ({"out_channels": 7}, r"/model out_channels 7 does not match kinematic_head 1 with 22 joints "
+                                  r"\(expected 68\)"),
+            ({"prediction": "velocity"}, r"kinematic_head 1 with prediction 'velocity'"),
+            ({"kinematic_head": 0, "kinematic_noise": 1, "out_channels": 66},
+             r"kinematic_noise 1 without kinematic_head"),
+        ]
+        for attrs, message in cases:
+            with self.subTest(attrs=attrs):
+                path = self.copy("flow_standard_kin")
+                with h5py.File(path, "a") as f:
+                    for k, v in attrs.items():
+                        f["model"].attrs[k] = v
+                motionio.seal_h5_file(path)
+                with self.assertRaisesRegex(FlowWeightsError, message):
+                    FlowReference(path)
+                r = reference("check", path)
+                self.assertEqual(r.returncode, 2, r.stdout + r.stderr)
+                self.assertIn("motionctl export --format weights", r.stderr)
+
     def test_missing_probe_dataset_is_named(self):
         path = self.copy()
         with h5py.File(path, "a") as f:
