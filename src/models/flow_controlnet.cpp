@@ -94,9 +94,9 @@ void FlowControlBranchImpl::copy_blocks_from(FlowTransformerImpl& base) {
 }
 
 FlowControlBranchImpl::Output FlowControlBranchImpl::forward(FlowTransformerImpl& base, const torch::Tensor& x,
-                                                     const torch::Tensor& t, const torch::Tensor& cond,
-                                                     const torch::Tensor& mask, const torch::Tensor& signal,
-                                                     const torch::Tensor& control_on) {
+                                                             const torch::Tensor& t, const torch::Tensor& cond,
+                                                             const torch::Tensor& mask, const torch::Tensor& signal,
+                                                             const torch::Tensor& control_on) {
   const int64_t B = x.size(0), T = x.size(1), J = x.size(2);
   TORCH_CHECK(J == opt.num_joints && x.size(3) == 3, "ControlNet expects [B, T, ", opt.num_joints, ", 3], got ",
               x.sizes());

@@ -105,9 +105,8 @@ struct FlowControlBranchImpl : torch::nn::Module {
     torch::Tensor base_out;  // the base's raw output (its parametrisation) with the branch's additions
     torch::Tensor residual;  // residual_head: [B, T, J, 3] on normalised absolute joints; else undefined
   };
-  Output forward(FlowTransformerImpl& base, const torch::Tensor& x, const torch::Tensor& t,
-                                const torch::Tensor& cond, const torch::Tensor& mask, const torch::Tensor& signal,
-                                const torch::Tensor& control_on = {});
+  Output forward(FlowTransformerImpl& base, const torch::Tensor& x, const torch::Tensor& t, const torch::Tensor& cond,
+                 const torch::Tensor& mask, const torch::Tensor& signal, const torch::Tensor& control_on = {});
 
   FlowTransformerOptions opt;
   torch::nn::Sequential signal_embed{nullptr};  // J*6 -> d -> SiLU -> d
@@ -153,9 +152,9 @@ class FlowControlNet {
  private:
   // One base + branch call at per-sample times tt [B]: the base's raw output
   // (velocity or clean endpoint, in the base's parametrisation) and the residual head's.
-  FlowControlBranchImpl::Output branch_output(const torch::Tensor& x, const torch::Tensor& tt, const torch::Tensor& text,
-                              const torch::Tensor& mask, const torch::Tensor& signal,
-                              const torch::Tensor& control_on) const;
+  FlowControlBranchImpl::Output branch_output(const torch::Tensor& x, const torch::Tensor& tt,
+                                              const torch::Tensor& text, const torch::Tensor& mask,
+                                              const torch::Tensor& signal, const torch::Tensor& control_on) const;
   std::shared_ptr<FlowPrior> base_;
   std::shared_ptr<FlowControlBranch> branch_;
   std::string run_dir_;

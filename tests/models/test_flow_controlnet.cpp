@@ -319,6 +319,66 @@ TEST_CASE("ControlNet losses on a clean-endpoint base: the base's velocity error
   }
 }
 
+TEST_CASE("ControlNet residual head: adds on the velocity of a velocity base, on the clean estimate of a clean one",
+          "[controlnet]") {
+  for (const std::string extra : {std::string(), std::string("  prediction: clean\n")}) {
+    INFO("base: " << (extra.empty() ? "velocity" : "clean"));
+    TempDir dir("cn_residual");
+    write_random_prior_run(dir.path, 40, "flow_prior", kPriorWordsWithNumbers, extra);
+    FlowControlNet net = FlowControlNet::around(FlowPrior::load(dir.path.string()), false, true);
+    const bool clean = net.base().net()->clean_prediction;
+    REQUIRE(clean == !extra.empty());
+    torch::manual_seed(5);
+    const int64_t B = 2, T = 20;
+    auto x = torch::randn({B, T, 22, 3});
+    auto t = torch::tensor({0.3f, 0.8f});
+    auto mask = torch::ones({B, T}, torch::kBool);
+    auto signal = control_signal(torch::randn({B, T, 22, 3}), (torch::rand({B, T, 22, 3}) < 0.2).to(torch::kFloat32));
+    auto text = net.base().encode_texts({"a person walks", "a person jumps"});
+    torch::NoGradGuard ng;
+    auto v0 = net.raw_velocity(x, t, text, mask, signal), c0 = net.raw_clean(x, t, text, mask, signal);
+    // A residual that is the same r on every frame: its weight zero, its bias r.
+    auto r = torch::randn({22 * 3});
+    net.branch()->residual_out->bias.copy_(r);
+    auto v1 = net.raw_velocity(x, t, text, mask, signal), c1 = net.raw_clean(x, t, text, mask, signal);
+    auto rr = r.view({1, 1, 22, 3});
+    auto gap = (1 - t).view({B, 1, 1, 1});
+    if (clean) {
+      CHECK(torch::allclose(c1 - c0, rr.expand_as(c0), 1e-4, 1e-5));
+      CHECK(torch::allclose(v1 - v0, (rr / gap).expand_as(v0), 1e-3, 1e-4));
+    } else {
+      CHECK(torch::allclose(v1 - v0, rr.expand_as(v0), 1e-4, 1e-5));
+      CHECK(torch::allclose(c1 - c0, (rr * gap).expand_as(c0), 1e-4, 1e-5));
+    }
+  }
+}
+
+TEST_CASE("ControlNet model.signal switches: saved with the run and rebuilt by load", "[controlnet]") {
+  TempDir t("cn_signal_meta");
+  std::string data = (t.path / "fx.h5").string();
+  REQUIRE(run_motionctl(fmt::format("fixture configs/data/smoke.yaml output={} fixture.num_clips=40 "
+                                    "fixture.max_frames=48 fixture.t_max=48",
+                                    data))
+              .exit_code == 0);
+  const std::string base_ov =
+      fmt::format("[optim.steps=4, optim.batch_size=8, optim.warmup=1, data.path={}, run.root={}, run.name=base, "
+                  "run.threads=1, run.log_every=4, run.checkpoint_every=4]",
+                  data, t.path.string());
+  TrainResult r = run_train("configs/prior/flow_controlnet_tiny.yaml",
+                            {"model.base.overrides=" + base_ov, "optim.steps=4", "optim.batch_size=8",
+                             "optim.warmup=1", "data.path=" + data, "run.root=" + t.path.string(), "run.name=cn",
+                             "run.threads=1", "run.log_every=4", "run.checkpoint_every=4",
+                             "model.signal.norm=true", "model.signal.residual_head=true"});
+  const std::string meta = slurp(r.run_dir / "outputs" / "controlnet_meta.yaml");
+  CHECK(meta.find("signal_norm: true") != std::string::npos);
+  CHECK(meta.find("residual_head: true") != std::string::npos);
+  FlowControlNet net = FlowControlNet::load(r.run_dir.string());
+  REQUIRE(net.branch()->signal_gain.defined());
+  REQUIRE(!net.branch()->residual_out.is_empty());
+  // Trained: the residual head moved off zero and came back from final.pt.
+  CHECK(net.branch()->residual_out->weight.abs().max().item<double>() > 0);
+}
+
 TEST_CASE("ControlNet pelvis-only model: configs and training masks control joint 0 alone", "[controlnet]") {
   for (const char* f : {"configs/prior/flow_controlnet_pelvis_tiny.yaml",
                         "configs/prior/flow_controlnet_pelvis_standard.yaml",
