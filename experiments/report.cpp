@@ -875,6 +875,8 @@ static std::string fold_verdicts(const std::vector<std::string>& v) {
 //   zero:     row's metric <= tol: its bootstrap interval against tol
 //   monotone: rows in order improve on metric (direction): every consecutive pair is a better test
 //   best:     row beats each of `others` on metric
+// better, best and monotone take `metrics: [...]` instead of `metric`: every pair is
+// tested on each metric and all must hold (per-group keys such as avg_err@density=1).
 // Verdicts: holds (the interval excludes the other side), contradicted (the interval lies
 // on the wrong side), undecided (it contains 0, or tol). No verdict from overlapping intervals.
 std::vector<ClaimCheck> check_claims(const std::string& claims_file, const std::vector<TableResult>& tables,
@@ -902,6 +904,19 @@ std::vector<ClaimCheck> check_claims(const std::string& claims_file, const std::
     }
     std::string kind = str_or(c, "kind");
     std::string metric = str_or(c, "metric");
+    // `metrics: [m1, m2, ...]` instead of `metric`: every pair is tested on each of them
+    // and all must hold (e.g. "at every density": avg_err@density=1, ...).
+    std::vector<std::string> metrics;
+    if (c["metrics"]) {
+      if (c["metric"]) fail("{}: claim '{}' sets both metric and metrics; keep one", claims_file, cc.id);
+      if (!c["metrics"].IsSequence() || c["metrics"].size() == 0)
+        fail("{}: claim '{}': metrics must be a non-empty list of metric keys", claims_file, cc.id);
+      for (auto m : c["metrics"]) metrics.push_back(m.as<std::string>());
+      if (kind == "zero") fail("{}: claim '{}': metrics (a list) is for better, best and monotone claims", claims_file, cc.id);
+      metric = metrics.front();
+    } else {
+      metrics.push_back(metric);
+    }
     std::string dir = str_or(c, "direction", "lower");
     if (dir != "lower" && dir != "higher")
       fail("{}: claim '{}': direction '{}' is not lower or higher", claims_file, cc.id, dir);
@@ -944,17 +959,22 @@ std::vector<ClaimCheck> check_claims(const std::string& claims_file, const std::
       }
     }
     for (auto& [a, b] : pairs) {
-      const RowResult* ra = find_row(*t, a);
-      const RowResult* rb = find_row(*t, b);
-      auto test = ra && rb ? test_rows(*ra, rb, metric, o) : std::nullopt;
-      if (!test) {
-        missing = true;
-        break;
+      for (const std::string& m : metrics) {
+        const RowResult* ra = find_row(*t, a);
+        const RowResult* rb = find_row(*t, b);
+        auto test = ra && rb ? test_rows(*ra, rb, m, o) : std::nullopt;
+        if (!test) {
+          missing = true;
+          metric = m;
+          break;
+        }
+        verdicts.push_back(better_verdict(*test, dir));
+        evidence.push_back(describe_test(fmt::format("{} {} − {}", m, a, b), *test));
+        if (verdicts.back() == "undecided")
+          power.push_back(a + " vs " + b + (metrics.size() > 1 ? " (" + m + ")" : "") + ": " +
+                          power_note(*test, 0.0, !ra->samples.empty() && !rb->samples.empty()));
       }
-      verdicts.push_back(better_verdict(*test, dir));
-      evidence.push_back(describe_test(fmt::format("{} {} − {}", metric, a, b), *test));
-      if (verdicts.back() == "undecided")
-        power.push_back(a + " vs " + b + ": " + power_note(*test, 0.0, !ra->samples.empty() && !rb->samples.empty()));
+      if (missing) break;
     }
     if (missing || verdicts.empty()) {
       cc.verdict = "not run";

@@ -11,6 +11,7 @@
 #include <random>
 
 #include "control/camera.h"
+#include "core/atomic_file.h"
 #include "core/error.h"
 #include "data/data_test_util.h"
 #include "experiments/experiment.h"
@@ -372,4 +373,52 @@ TEST_CASE("common random numbers: every flow step rule starts from the same init
   CHECK(torch::equal(a.x0, b.x0));
   auto gen = at::make_generator<at::CPUGeneratorImpl>(11);
   CHECK(torch::equal(a.x0, torch::randn({3, 20, 22, 3}, gen, torch::TensorOptions())));
+}
+
+TEST_CASE("claims: a metrics list tests every per-group key, and all must hold", "[experiments]") {
+  // 40 tasks over densities 1 and 2: row "a" beats "b" by 0.1 at density 1 and loses by
+  // 0.1 at density 2; a shared per-task spread that only pairing removes.
+  std::mt19937_64 rng(5);
+  std::normal_distribution<double> task_sd(0.0, 1.0), noise(0.0, 0.01);
+  std::vector<std::string> groups;
+  std::vector<double> va, vb;
+  for (int i = 0; i < 40; ++i) {
+    const bool d1 = i % 2 == 0;
+    groups.push_back(std::string("joint=pelvis/density=") + (d1 ? "1" : "2"));
+    const double base = 3.0 + task_sd(rng);
+    vb.push_back(base);
+    va.push_back(base + (d1 ? -0.1 : 0.1) + noise(rng));
+  }
+  TableResult t;
+  t.spec.table.id = "synthetic/table";
+  RowResult a, b;
+  a.row_id = "a";
+  b.row_id = "b";
+  a.samples = synthetic_row(groups, va, "avg_err");
+  b.samples = synthetic_row(groups, vb, "avg_err");
+  t.rows = {a, b};
+  TempDir dir{"claims"};
+  const std::string file = (dir.path / "claims.yaml").string();
+  write_file_atomic(file,
+             "claims:\n"
+             "  - {id: d1, table: synthetic/table, kind: better, row: a, than: b, metrics: [\"avg_err@density=1\"],"
+             " text: one}\n"
+             "  - {id: both, table: synthetic/table, kind: better, row: a, than: b,"
+             " metrics: [\"avg_err@density=1\", \"avg_err@density=2\"], text: both}\n"
+             "  - {id: absent, table: synthetic/table, kind: better, row: a, than: b,"
+             " metrics: [\"avg_err@density=1\", \"avg_err@density=7\"], text: a group no task has}\n");
+  auto c = check_claims(file, {t});
+  REQUIRE(c.size() == 3);
+  CHECK(c[0].verdict == "holds");
+  CHECK(c[1].verdict == "contradicted");  // holds at density 1, contradicted at density 2
+  CHECK(c[1].evidence.find("avg_err@density=2 a − b") != std::string::npos);
+  CHECK(c[2].verdict == "not run");
+  CHECK(c[2].evidence.find("avg_err@density=7") != std::string::npos);
+  // Both keys, or a list on a zero claim, are refused naming the claim.
+  write_file_atomic(file,
+             "claims:\n  - {id: twice, table: synthetic/table, kind: better, row: a, than: b, metric: avg_err,"
+             " metrics: [avg_err], text: x}\n");
+  CHECK_THROWS_WITH(check_claims(file, {t}), Catch::Contains("twice") && Catch::Contains("metrics"));
+  write_file_atomic(file, "claims:\n  - {id: z, table: synthetic/table, kind: zero, row: a, metrics: [avg_err], text: x}\n");
+  CHECK_THROWS_WITH(check_claims(file, {t}), Catch::Contains("'z'"));
 }
