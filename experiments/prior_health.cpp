@@ -10,6 +10,7 @@
 
 #include "core/atomic_file.h"
 #include "core/error.h"
+#include "core/run_dir.h"
 
 namespace mc {
 namespace fs = std::filesystem;
@@ -38,6 +39,32 @@ bool covered(const std::string& type) {
 }
 
 }  // namespace
+
+std::optional<ControlUptake> control_uptake(const std::string& run_dir, const std::string& model_type) {
+  ControlUptake u;
+  u.run_dir = run_dir;
+  u.model_type = model_type;
+  std::string with_key, without_key;
+  if (model_type == "flow_controlnet") {
+    u.figure = "val_ctrl_t0.10: the controlled entries' velocity error at t = 0.1, branch control on / off";
+    with_key = "val_ctrl_t0.10";
+    without_key = "val_ctrl_off_t0.10";
+  } else if (model_type == "anchor_adapter") {
+    u.figure = "val_soft_control_error_t01: soft-decoded anchor error (m) at t = 0.1, real / zeroed features";
+    with_key = "val_soft_control_error_t01";
+    without_key = "val_soft_control_error_t01_zeroed";
+  } else {
+    return std::nullopt;
+  }
+  const auto summary = read_summary_csv(fs::path(run_dir) / "summary.csv");
+  if (summary.count(with_key)) u.with_signal = summary.at(with_key);
+  if (summary.count(without_key)) u.without_signal = summary.at(without_key);
+  if (!u.with_signal || !u.without_signal)
+    u.note = fmt::format("not logged: the run has no {} (trained before that validation existed); retrain it to "
+                         "measure",
+                         !u.with_signal ? with_key : without_key);
+  return u;
+}
 
 ProfileHealth::ProfileHealth(const ProfileFile& pf, const MotionSet& data) : profile_name_(pf.profile.name) {
   const ProfileConfig& p = pf.profile;
@@ -105,7 +132,12 @@ std::string ProfileHealth::table_line(const TableResult& t) {
   bool all_healthy = true;
   for (const auto& run : runs) {
     const std::string type = model_type_of(run);
-    if (!covered(type)) continue;  // adapters, ControlNets: no health check
+    if (!covered(type)) {  // adapters, ControlNets: no sampling check, their signal uptake instead
+      const bool seen = std::any_of(controls_.begin(), controls_.end(), [&](auto& c) { return c.run_dir == run; });
+      if (!seen)
+        if (auto u = control_uptake(run, type)) controls_.push_back(*u);
+      continue;
+    }
     const ComponentHealth& c = check(run, type);
     all_healthy = all_healthy && c.healthy();
     std::string verdict;
@@ -144,6 +176,21 @@ void ProfileHealth::write(const fs::path& out_dir) const {
                                    : c.healthy() ? "–" : fmt::format("{}", fmt::join(c.report->failed(), "; "));
     md += fmt::format("| `{}` | {} | {} | {} |\n", c.run_dir, c.model_type, verdict, cell(missed));
   }
+  if (!controls_.empty()) {
+    md += "\n## Control components: do they read their signal?\n\n"
+          "Adapters and ControlNets are not sampled by the check. Each run's own validation at t = 0.1 compares "
+          "the same draws with its control signal and with it removed (no target; docs/metrics.md, \"Prior "
+          "health\"). A change near 0 means the component learned nothing from its signal.\n\n"
+          "| component | model type | figure | with signal | without | change |\n|---|---|---|---:|---:|---:|\n";
+    for (const auto& u : controls_) {
+      if (u.with_signal && u.without_signal)
+        md += fmt::format("| `{}` | {} | {} | {:.4g} | {:.4g} | {:+.1f} % |\n", u.run_dir, u.model_type, cell(u.figure),
+                          *u.with_signal, *u.without_signal,
+                          100.0 * (*u.with_signal - *u.without_signal) / std::max(std::abs(*u.without_signal), 1e-12));
+      else
+        md += fmt::format("| `{}` | {} | {} | – | – | {} |\n", u.run_dir, u.model_type, cell(u.figure), cell(u.note));
+    }
+  }
   std::string json = fmt::format("{{\n\"profile\": {},\n\"samples\": {},\n\"healthy\": {},\n\"components\": [\n",
                                  json_quote(profile_name_), base_.samples,
                                  healthy == static_cast<int>(checked_.size()) ? "true" : "false");
@@ -160,6 +207,15 @@ void ProfileHealth::write(const fs::path& out_dir) const {
                           json_quote(c.run_dir), json_quote(c.model_type), json_quote(c.error));
     }
     json += i + 1 < checked_.size() ? ",\n" : "\n";
+  }
+  json += "],\n\"control_components\": [\n";
+  auto num = [](const std::optional<double>& v) { return v ? fmt::format("{:.17g}", *v) : std::string("null"); };
+  for (size_t i = 0; i < controls_.size(); ++i) {
+    const auto& u = controls_[i];
+    json += fmt::format("{{\"run_dir\": {}, \"model_type\": {}, \"figure\": {}, \"with_signal\": {}, "
+                        "\"without_signal\": {}, \"note\": {}}}{}\n",
+                        json_quote(u.run_dir), json_quote(u.model_type), json_quote(u.figure), num(u.with_signal),
+                        num(u.without_signal), json_quote(u.note), i + 1 < controls_.size() ? "," : "");
   }
   json += "]\n}\n";
   write_file_atomic(out_dir / "health.md", md);

@@ -16,6 +16,18 @@
 
 namespace mc {
 
+// A trained control component (flow ControlNet, AnchorRoute adapter) the health check
+// does not sample: does it read its control signal? Its run's own validation at t = 0.1,
+// on the same draws with the signal and with it removed (summary.csv). No target.
+struct ControlUptake {
+  std::string run_dir, model_type, figure;  // figure: what is compared (e.g. val_ctrl_t0.10)
+  std::optional<double> with_signal, without_signal;  // absent: the run predates the logging
+  std::string note;                                    // why absent
+};
+// Reads the uptake figures of `run_dir` (model type flow_controlnet or anchor_adapter);
+// nullopt for other types.
+std::optional<ControlUptake> control_uptake(const std::string& run_dir, const std::string& model_type);
+
 struct ComponentHealth {
   std::string run_dir, model_type;
   std::optional<HealthReport> report;  // absent when the check could not run
@@ -48,6 +60,7 @@ class ProfileHealth {
   std::string cap_error_;  // non-empty when no N >= 3 fits the data
   std::vector<ComponentHealth> checked_;
   std::map<std::string, size_t> index_;  // run_dir -> checked_ position
+  std::vector<ControlUptake> controls_;  // control components the tables used, in first-use order
 };
 
 }  // namespace mc

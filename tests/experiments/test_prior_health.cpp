@@ -26,6 +26,14 @@ TEST_CASE("reproduce's prior health: table tops name the verdict, health.md/json
   write_random_prior_run(prior, 196);  // random weights: bones are not kept
   fs::create_directories(adapter);
   std::ofstream(adapter / "config.yaml") << "model:\n  type: anchorkv_adapter\n";  // not covered: left out
+  // Control components: no sampling check, their signal uptake from summary.csv instead.
+  const fs::path kv = dir.path / "kv", cn = dir.path / "cn";
+  fs::create_directories(kv);
+  fs::create_directories(cn);
+  std::ofstream(kv / "config.yaml") << "model:\n  type: anchor_adapter\n";
+  std::ofstream(kv / "summary.csv") << "key,value\nval_soft_control_error_t01,0.4\nval_soft_control_error_t01_zeroed,0.5\n";
+  std::ofstream(cn / "config.yaml") << "model:\n  type: flow_controlnet\n";
+  std::ofstream(cn / "summary.csv") << "key,value\nval_ctrl_t0.10,0.05\n";  // trained before val_ctrl_off
 
   ProfileFile pf;
   pf.profile.name = "ci";
@@ -63,7 +71,7 @@ TEST_CASE("reproduce's prior health: table tops name the verdict, health.md/json
   a.row_id = b.row_id = "row";
   a.label = b.label = "Row";
   a.values["fid"] = b.values["fid"] = {1.0, 2.0};
-  a.components = {prior.string(), adapter.string()};
+  a.components = {prior.string(), adapter.string(), kv.string(), cn.string()};
   b.components = {prior.string()};  // the same prior twice: checked once
   t.rows = {a, b};
   t.health = health.table_line(t);
@@ -91,8 +99,16 @@ TEST_CASE("reproduce's prior health: table tops name the verdict, health.md/json
   CHECK(hmd.find("0 of 1 healthy") != std::string::npos);
   CHECK(hmd.find(fmt::format("| `{}` | flow_prior | **NOT healthy** |", prior.string())) != std::string::npos);
   CHECK(hmd.find("| metric | flow_prior | ground truth | ratio | target | pass |") != std::string::npos);
+  CHECK(hmd.find("## Control components: do they read their signal?") != std::string::npos);
+  CHECK(hmd.find(fmt::format("| `{}` | anchor_adapter |", kv.string())) != std::string::npos);
+  CHECK(hmd.find("| 0.4 | 0.5 | -20.0 % |") != std::string::npos);
+  CHECK(hmd.find("not logged: the run has no val_ctrl_off_t0.10") != std::string::npos);
+  CHECK(hmd.find("anchorkv_adapter") == std::string::npos);  // unknown types are left out
+  CHECK_FALSE(control_uptake(prior.string(), "flow_prior"));
   CHECK(std::system(fmt::format("'{}' -c 'import json, sys; d = json.load(open(sys.argv[1])); "
-                                "assert d[\"healthy\"] is False and len(d[\"components\"]) == 1' '{}'",
+                                "assert d[\"healthy\"] is False and len(d[\"components\"]) == 1; "
+                                "c = d[\"control_components\"]; assert len(c) == 2 and c[0][\"with_signal\"] == 0.4 "
+                                "and c[1][\"without_signal\"] is None' '{}'",
                                 MOTIONCTL_PYTHON, (out / "health.json").string())
                         .c_str()) == 0);
 
