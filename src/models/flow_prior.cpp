@@ -28,6 +28,10 @@ std::string FlowPriorConfig::validate() const {
   if (auto e = text_fields_error(); !e.empty()) return e;
   if (eval_t.empty()) return "eval_t needs at least one flow time";
   if (temporal_kernel % 2 == 0) return fmt::format("temporal_kernel {} must be odd (centred on its frame)", temporal_kernel);
+  if (kinematic_head.skip.enabled && !kinematic_head.enabled)
+    return "kinematic_head.skip.enabled needs kinematic_head.enabled (the skip acts on the head's channels)";
+  if (kinematic_head.skip.enabled && kinematic_head.noise.enabled)
+    return "kinematic_head.skip.enabled assumes the papers' N(0, I) source noise: turn kinematic_head.noise off";
   if (kinematic_head.noise.enabled && !kinematic_head.enabled)
     return "kinematic_head.noise.enabled needs kinematic_head.enabled (its channel statistics shape the noise)";
   if (kinematic_head.enabled && prediction != "clean")
@@ -76,7 +80,36 @@ FlowPriorNetImpl::FlowPriorNetImpl(int vocab_size, int num_joints, const FlowPri
     kin_mean = register_buffer("kin_mean", torch::zeros({C}));
     kin_std = register_buffer("kin_std", torch::ones({C}));
     kinematic_noise = c.kinematic_head.noise.enabled;
+    kinematic_skip = c.kinematic_head.skip.enabled;
   }
+}
+
+torch::Tensor FlowPriorNetImpl::head_channels(const torch::Tensor& out, const torch::Tensor& x, const torch::Tensor& t,
+                                              const torch::Tensor& mask) const {
+  if (!kinematic_skip) return out;
+  const auto dev = out.device();
+  const auto dt = out.scalar_type();
+  const int64_t C = out.size(2);
+  auto jstd = joint_std.to(dev, dt), jmean = joint_mean.to(dev, dt);
+  auto s = kin_std.to(dev, dt), mu = kin_mean.to(dev, dt);
+  // n_c: the std, in channel c's z-units, of N(0, I) source noise in normalised
+  // joints. Steps and root-relative joints are differences of two independent
+  // draws (sqrt 2); root height and position are one draw.
+  const double r2 = std::sqrt(2.0);
+  std::vector<torch::Tensor> parts = {r2 * jstd[0].view({1}), r2 * jstd[2].view({1}), jstd[1].view({1}),
+                                      jstd[0].view({1}), jstd[2].view({1}), (r2 * jstd).repeat({(C - 5) / 3})};
+  auto n = torch::cat(parts) / s;  // [C]
+  // The channels of x / t: K is linear in world joints, world(x / t) = x std / t + mean,
+  // and K of the constant mean pose is [0, 0, mean_y, mean_x, mean_z, 0, ...].
+  auto kmean = torch::zeros({C}, out.options());
+  kmean.narrow(0, 2, 3).copy_(torch::stack({jmean[1], jmean[0], jmean[2]}));
+  auto lin = kinematic_channels(x * jstd, mask.to(dev));  // K(x std) [B, T, C]
+  auto tt = t.to(dev, dt).view({-1, 1, 1});
+  auto denom = tt * tt + (1 - tt).pow(2) * n * n;  // t^2 (1 + sigma^2), [B, 1, C]
+  // c_skip (K(x std)/t + K(mean) - mu)/s with c_skip = t^2 / denom: no division by t.
+  auto skip = (tt * lin + tt * tt * (kmean - mu)) / (s * denom);
+  auto c_out = (1 - tt) * n / denom.sqrt();
+  return skip + c_out * out;
 }
 
 torch::Tensor FlowPriorNetImpl::decode_head(const torch::Tensor& out, const torch::Tensor& mask) const {
@@ -111,7 +144,7 @@ torch::Tensor FlowPriorNetImpl::to_velocity(const torch::Tensor& out, const torc
 
 torch::Tensor FlowPriorNetImpl::to_clean(const torch::Tensor& out, const torch::Tensor& x, const torch::Tensor& t,
                                          const torch::Tensor& mask) const {
-  if (clean_prediction) return kinematic_head ? decode_head(out, mask) : out;
+  if (clean_prediction) return kinematic_head ? decode_head(head_channels(out, x, t, mask), mask) : out;
   return x + (1 - t.to(x.device(), x.scalar_type())).view({-1, 1, 1, 1}) * out;
 }
 
@@ -318,7 +351,7 @@ class FlowPriorTrainer : public Trainable {
       auto dev = out.device();
       auto target = (kinematic_channels(ctx_.data->denormalize(x1), b.mask) - net_->kin_mean.to(dev)) /
                     net_->kin_std.to(dev);
-      auto kerr = out - target;
+      auto kerr = net_->head_channels(out, xt, t, b.mask) - target;
       if (space != "clean") kerr = kerr * inv_gap().view({-1, 1, 1});
       auto km = b.mask.unsqueeze(-1).to(out.dtype());
       loss = loss + cfg_.kinematic_head.weight * (kerr.pow(2) * km).sum() / (wm.sum() * out.size(2) + 1e-8);

@@ -96,6 +96,11 @@ struct FlowPriorNetImpl : torch::nn::Module {
                          const torch::Tensor& mask) const;
   // Kinematic head: its z-scored channels [B, T, C] to normalised joints [B, T, J, 3].
   torch::Tensor decode_head(const torch::Tensor& out, const torch::Tensor& mask) const;
+  // Kinematic head: the z-scored channels [B, T, C] of x1_hat that the output `out`
+  // stands for at (x, t): `out` itself, or with model.kinematic_head.skip
+  // c_skip(t) (channels of x / t) + c_out(t) out (models/kinematic_head.h).
+  torch::Tensor head_channels(const torch::Tensor& out, const torch::Tensor& x, const torch::Tensor& t,
+                              const torch::Tensor& mask) const;
   // The source noise x0 [B, T, J, 3] (normalised) for clips whose valid frames are
   // `mask` [B, T]: N(0, I) drawn from `gen` (exactly as torch::randn({B, T, J, 3}, gen)),
   // or with model.kinematic_head.noise.enabled, i.i.d. channel draws [B, T, C]
@@ -104,6 +109,7 @@ struct FlowPriorNetImpl : torch::nn::Module {
   bool clean_prediction = false;
   bool kinematic_head = false;
   bool kinematic_noise = false;
+  bool kinematic_skip = false;
   // model.text_encoder.frozen with a pretrained encoder: encode_text runs `text`
   // without gradient and in eval mode whatever mode the bundle is in.
   bool text_frozen = false;

@@ -136,6 +136,13 @@ void write_flow_weights(const FlowPrior& prior, const FlowWeightsSource& source,
            "exporting",
            source.run_dir, name);
   const FlowPriorNetImpl& net = *prior.net();
+  // The skip (model.kinematic_head.skip) has no description in format version 2 and
+  // tools/flow_reference.py does not compute it: refuse rather than write a file that
+  // decodes to another prior.
+  if (net.kinematic_skip)
+    fail("flow prior '{}': model.kinematic_head.skip.enabled is not part of the weights format (version {}); "
+         "export a prior without the skip, or use the run directory itself",
+         source.run_dir, kFlowWeightsVersion);
   const FlowTransformerOptions& o = net.transformer->opt;
   const FlowPriorConfig& c = prior.config();
   FlowPriorConfig dumped = c;

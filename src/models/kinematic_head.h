@@ -39,6 +39,26 @@ struct KinematicNoiseConfig : Config {
   bool omitted_from_dump() const override { return !enabled; }
 };
 
+// EDM-style skip per channel (ours, `model.kinematic_head.skip.enabled`): x1_hat's
+// channels = c_skip(t) * the channels of x_t / t + c_out(t) * the network's output,
+// with c_skip = 1 / (1 + sigma_c^2), c_out = sigma_c / sqrt(1 + sigma_c^2),
+// sigma_c = (1 - t) / t * n_c and n_c the std of the source noise in channel c in
+// the channel's own z-units (Karras et al.'s preconditioning with unit data std, the
+// channels being z-scored). A pure clean network must rewrite every detail of x_t at
+// t -> 1 with its finite precision (the measured bone drift and sinking feet); with
+// the skip, a channel whose noise has fallen below its data scale is carried over
+// from x_t and the network writes only a correction. At t = 0 it is the clean head
+// (c_skip = 0, c_out = 1). Its own section, absent from the dump when off.
+struct KinematicSkipConfig : Config {
+  bool enabled = false;
+  void visit(FieldVisitor& v) override {
+    v("enabled", enabled,
+      "x1_hat's channels = c_skip(t) x_t's channels + c_out(t) the network's output, per channel (ours; off: "
+      "the network writes x1_hat)");
+  }
+  bool omitted_from_dump() const override { return !enabled; }
+};
+
 struct KinematicHeadConfig : Config {
   bool enabled = false;
   // Weight of the loss on the head's own channels (each z-scored by its training
@@ -47,14 +67,16 @@ struct KinematicHeadConfig : Config {
   // (the conditional expectation) is unchanged.
   double weight = 1.0;
   KinematicNoiseConfig noise;
+  KinematicSkipConfig skip;
   void visit(FieldVisitor& v) override {
     v("enabled", enabled,
       "the network writes x1_hat as root steps, root height, root position and root-relative joints "
       "(needs prediction: clean)");
     v("weight", weight, "weight of the z-scored loss on those channels beside the flow loss", in_range(0.0, 1e4));
+    v("skip", skip, "EDM-style per-channel skip from x_t (off by default)");
     v("noise", noise, "source noise in the head's channels (off by default)");
   }
-  bool omitted_from_dump() const override { return !enabled && weight == 1.0 && !noise.enabled; }
+  bool omitted_from_dump() const override { return !enabled && weight == 1.0 && !noise.enabled && !skip.enabled; }
 };
 
 // Channels per frame for J joints: [step_x, step_z, root_y, root_x, root_z, (J-1)*3

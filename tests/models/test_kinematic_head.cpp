@@ -207,3 +207,64 @@ TEST_CASE("kinematic head: source noise is the papers' N(0, I) unless asked, els
   TrainJobConfig bad;
   CHECK_THROWS_AS(kin_trainer(bad, "  kinematic_head:\n    noise:\n      enabled: true\n"), mc::UserError);
 }
+
+TEST_CASE("kinematic head skip: the clean head at t = 0, x itself as t -> 1, the noise's own scale per channel between",
+          "[flow][kinematic]") {
+  TrainJobConfig plain_job, skip_job;
+  auto plain = kin_trainer(plain_job, "  kinematic_head:\n    enabled: true\n");
+  auto skip = kin_trainer(skip_job, "  kinematic_head:\n    enabled: true\n    skip:\n      enabled: true\n");
+  CHECK(dump_config(plain_job).find("skip") == std::string::npos);
+  CHECK(dump_config(skip_job).find("skip") != std::string::npos);
+  auto& pn = dynamic_cast<FlowPriorNetImpl&>(plain->module());
+  auto& sn = dynamic_cast<FlowPriorNetImpl&>(skip->module());
+  REQUIRE(sn.kinematic_skip);
+  REQUIRE_FALSE(pn.kinematic_skip);
+  const int64_t J = 22, C = kinematic_channel_count(J), T = 8;
+  auto mask = prefix_mask({8, 5}, T);
+  auto vm = mask.view({2, T, 1, 1}).expand({2, T, J, 3});
+  for (uint64_t seed : {1u, 2u, 3u}) {
+    torch::manual_seed(seed);
+    auto world = wandering_clips(2, T, J);
+    auto x1 = (world - sn.joint_mean) / sn.joint_std;
+    auto x0 = torch::randn({2, T, J, 3});
+    auto out = torch::randn({2, T, C});
+    // t = 0: exactly the plain head (c_skip = 0, c_out = 1).
+    auto t0 = torch::zeros({2});
+    CHECK(torch::allclose(sn.head_channels(out, x0, t0, mask), out, 0, 0));
+    CHECK(torch::allclose(sn.to_clean(out, x0, t0, mask), pn.decode_head(out, mask), 1e-5, 1e-5));
+    // t -> 1: x1_hat is x_t itself whatever the output (c_out -> 0).
+    auto t1 = torch::full({2}, 1.0 - 1e-6);
+    auto xt = 0.999999 * x1 + 1e-6 * x0;
+    CHECK(torch::allclose(sn.to_clean(out, xt, t1, mask).masked_select(vm), xt.masked_select(vm), 1e-3, 1e-3));
+    // The plain head ignores x: the same output gives the same x1_hat at any t.
+    CHECK(torch::allclose(pn.to_clean(out, xt, t1, mask), pn.decode_head(out, mask)));
+    // Between: affine in the output with slope c_out in (0, 1), and the skip part is
+    // c_skip times the channels of x / t (here x = t x1 exactly, no noise).
+    auto tm = torch::full({2}, 0.6);
+    auto zero = torch::zeros_like(out);
+    auto base = sn.head_channels(zero, 0.6 * x1, tm, mask);
+    auto slope = sn.head_channels(torch::ones_like(out), 0.6 * x1, tm, mask) - base;
+    CHECK((slope > 0).all().item<bool>());
+    CHECK((slope < 1).all().item<bool>());
+    auto z1 = (kinematic_channels(world, mask) - sn.kin_mean) / sn.kin_std;
+    auto c_skip = 1 - slope.pow(2);  // c_skip = 1 / (1 + s^2), c_out = s / sqrt(1 + s^2)
+    auto cm = mask.unsqueeze(-1).expand({2, T, C});
+    CHECK(torch::allclose(base.masked_select(cm), (c_skip * z1).masked_select(cm), 1e-4, 1e-4));
+  }
+  // The skip needs the head, and the papers' noise.
+  TrainJobConfig bad1, bad2;
+  CHECK_THROWS_AS(kin_trainer(bad1, "  kinematic_head:\n    skip:\n      enabled: true\n"), mc::UserError);
+  CHECK_THROWS_AS(kin_trainer(bad2, "  kinematic_head:\n    enabled: true\n    skip:\n      enabled: true\n"
+                                    "    noise:\n      enabled: true\n"),
+                  mc::UserError);
+  // Same weights and draws as the plain head: the loss trains (finite, non-zero gradient).
+  test::same_random_weights({plain.get(), skip.get()});
+  torch::manual_seed(4);
+  auto l = skip->loss({0, 1}).loss;
+  l.backward();
+  double gsq = 0;
+  for (auto& p : skip->trainable_parameters())
+    if (p.grad().defined()) gsq += p.grad().pow(2).sum().item<double>();
+  CHECK(std::isfinite(l.item<double>()));
+  CHECK(gsq > 0);
+}
