@@ -53,6 +53,20 @@ std::optional<ControlUptake> control_uptake(const std::string& run_dir, const st
     u.figure = "val_soft_control_error_t01: soft-decoded anchor error (m) at t = 0.1, real / zeroed features";
     with_key = "val_soft_control_error_t01";
     without_key = "val_soft_control_error_t01_zeroed";
+    // Which adapter it is (the run names are hashes): its kind and the switches that
+    // tell Table IV's rows apart.
+    try {
+      YAML::Node m = YAML::LoadFile((fs::path(run_dir) / "config.yaml").string())["model"];
+      if (m && m["adapter"]) {
+        std::string what = m["adapter"].as<std::string>();
+        if (m["dual_context"]) what += m["dual_context"].as<bool>() ? ", dual context" : ", no dual context";
+        if (m["lambda_anc"]) what += fmt::format(", lambda_anc {:g}", m["lambda_anc"].as<double>());
+        if (m["training"] && m["training"]["zero_features"] && m["training"]["zero_features"].as<bool>())
+          what += ", trained on zeroed features (audit twin)";
+        u.model_type += " (" + what + ")";
+      }
+    } catch (const YAML::Exception&) {  // the figures still say what they can
+    }
   } else {
     return std::nullopt;
   }

@@ -30,7 +30,7 @@ TEST_CASE("reproduce's prior health: table tops name the verdict, health.md/json
   const fs::path kv = dir.path / "kv", cn = dir.path / "cn";
   fs::create_directories(kv);
   fs::create_directories(cn);
-  std::ofstream(kv / "config.yaml") << "model:\n  type: anchor_adapter\n";
+  std::ofstream(kv / "config.yaml") << "model:\n  type: anchor_adapter\n  adapter: anchorkv\n  dual_context: false\n";
   std::ofstream(kv / "summary.csv") << "key,value\nval_soft_control_error_t01,0.4\nval_soft_control_error_t01_zeroed,0.5\n";
   std::ofstream(cn / "config.yaml") << "model:\n  type: flow_controlnet\n";
   std::ofstream(cn / "summary.csv") << "key,value\nval_ctrl_t0.10,0.05\n";  // trained before val_ctrl_off
@@ -100,7 +100,7 @@ TEST_CASE("reproduce's prior health: table tops name the verdict, health.md/json
   CHECK(hmd.find(fmt::format("| `{}` | flow_prior | **NOT healthy** |", prior.string())) != std::string::npos);
   CHECK(hmd.find("| metric | flow_prior | ground truth | ratio | target | pass |") != std::string::npos);
   CHECK(hmd.find("## Control components: do they read their signal?") != std::string::npos);
-  CHECK(hmd.find(fmt::format("| `{}` | anchor_adapter |", kv.string())) != std::string::npos);
+  CHECK(hmd.find(fmt::format("| `{}` | anchor_adapter (anchorkv, no dual context) |", kv.string())) != std::string::npos);
   CHECK(hmd.find("| 0.4 | 0.5 | -20.0 % |") != std::string::npos);
   CHECK(hmd.find("not logged: the run has no val_ctrl_off_t0.10") != std::string::npos);
   CHECK(hmd.find("anchorkv_adapter") == std::string::npos);  // unknown types are left out
