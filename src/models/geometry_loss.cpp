@@ -34,6 +34,14 @@ torch::Tensor geometry_loss(const GeometryLossConfig& g, const Skeleton& sk, con
     auto horiz = d.select(3, 0).pow(2) + d.select(3, 2).pow(2);       // squared horizontal slip error
     total = total + g.contact_weight * (horiz * contact * pairs).sum() / (whole_pairs * double(toes.size()) + 1e-8);
   }
+  if (g.floor.weight > 0) {
+    const auto& toes = sk.role("toes");
+    auto ti = torch::tensor(std::vector<int64_t>(toes.begin(), toes.end()), torch::kLong).to(dev);
+    auto contact = (gt_height.index_select(2, ti) < g.contact_height).to(err_m.scalar_type());  // [B, T, toes]
+    auto v = valid.view({valid.size(0), T, 1});
+    auto ey = err_m.index_select(2, ti).select(3, 1);  // toes' height error [B, T, toes]
+    total = total + g.floor.weight * (ey.pow(2) * contact * v).sum() / (whole_valid.sum() * double(toes.size()) + 1e-8);
+  }
   return total;
 }
 

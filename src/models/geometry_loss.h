@@ -12,7 +12,21 @@
 
 namespace mc {
 
-// Both terms are squared errors of the caller's error, measured in world metres per
+// floor (ours, 2026-11-28): the squared height error of the toes on frames where the
+// ground-truth toe is in contact (below contact_height). The adopted flow prior's toes
+// sit ±2 cm around the floor when planted (below y = 0 on half the frames), and the
+// skating metric counts a toe below 5 cm as planted, so sunk swing feet count as
+// sliding (docs/choices.md). Its own section, absent from the dump when off.
+struct GeometryFloorConfig : Config {
+  double weight = 0.0;
+  void visit(FieldVisitor& v) override {
+    v("weight", weight, "weight of the squared toe height error (m) on ground-truth contact frames (0 = off)",
+      in_range(0.0, 1e6));
+  }
+  bool omitted_from_dump() const override { return weight == 0.0; }
+};
+
+// The terms are squared errors of the caller's error, measured in world metres per
 // axis. For the flow prior that error is the flow-matching one times the per-axis
 // std: a positive-definite reweighting, so the loss still has its minimiser at the
 // conditional expectation (the flow on absolute joints is unchanged); it only decides
@@ -27,6 +41,8 @@ namespace mc {
 //     pairs of frames where the ground-truth toe is below contact_height at both
 //     frames (MDM's foot-contact loss, on the error so a moving ground-truth toe is
 //     not pulled to rest).
+//   floor.weight: the toes' squared height error on ground-truth contact frames
+//     (GeometryFloorConfig above).
 struct GeometryLossConfig : Config {
   double bone_weight = 0.0;
   double contact_weight = 0.0;
@@ -39,8 +55,10 @@ struct GeometryLossConfig : Config {
       in_range(0.0, 1e6));
     v("contact_height", contact_height, "a ground-truth toe below this height (m) at both frames is in contact",
       in_range(0.0, 1.0));
+    v("floor", floor, "toe height error on ground-truth contact frames (ours; off by default)");
   }
-  bool enabled() const { return bone_weight > 0 || contact_weight > 0; }
+  GeometryFloorConfig floor;
+  bool enabled() const { return bone_weight > 0 || contact_weight > 0 || floor.weight > 0; }
   bool omitted_from_dump() const override { return !enabled() && contact_height == 0.05; }
 };
 

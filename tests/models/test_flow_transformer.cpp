@@ -257,6 +257,21 @@ TEST_CASE("flow prior: the geometry loss sees bone and toe-slip errors, not comm
     one.select(2, toe).select(2, 2).fill_(1.0);
     CHECK(geometry_loss(g, sk, one, air, valid, whole).item<double>() == Approx(2.0 / ((J - 1) * 3)));
     g.contact_weight = 5.0;
+    // The floor term: a toe's height error on contact frames only, whatever its slip.
+    {
+      GeometryLossConfig f;
+      f.floor.weight = 3.0;
+      CHECK(f.enabled());
+      auto sunk = torch::zeros({B, T, J, 3});
+      sunk.select(2, toe).select(2, 1).fill_(-0.02);  // one toe 2 cm too low on every frame
+      // 3 * 0.0004 over (frames x 2 toes), one toe of two in error.
+      CHECK(geometry_loss(f, sk, sunk, ground, valid, whole).item<double>() == Approx(3.0 * 0.0004 / 2));
+      CHECK(geometry_loss(f, sk, sunk, air, valid, whole).item<double>() == Approx(0.0).margin(1e-12));
+      CHECK(geometry_loss(f, sk, slide, ground, valid, whole).item<double>() == Approx(0.0).margin(1e-12));
+      auto pelvis_low = torch::zeros({B, T, J, 3});
+      pelvis_low.select(2, 0).select(2, 1).fill_(-0.05);  // another joint's height error: not the toes'
+      CHECK(geometry_loss(f, sk, pelvis_low, ground, valid, whole).item<double>() == Approx(0.0).margin(1e-12));
+    }
   }
   // Off: exactly zero; invalid frames do not count.
   GeometryLossConfig off;
@@ -271,6 +286,10 @@ TEST_CASE("flow prior: the geometry loss section is off by default and then abse
   auto geo = tiny_flow_trainer(b, "  geometry_loss:\n    bone_weight: 1.0\n    contact_weight: 1.0\n", true);
   CHECK(dump_config(a).find("geometry_loss") == std::string::npos);
   CHECK(dump_config(b).find("geometry_loss") != std::string::npos);
+  CHECK(dump_config(b).find("floor") == std::string::npos);  // the floor term's section stays out when off
+  TrainJobConfig c;
+  tiny_flow_trainer(c, "  geometry_loss:\n    floor:\n      weight: 10\n", true);
+  CHECK(dump_config(c).find("floor") != std::string::npos);
   test::same_random_weights({plain.get(), geo.get()});
   torch::manual_seed(9);
   double lp = plain->loss({0, 1}).loss.item<double>();
