@@ -8,7 +8,6 @@
 
 #include <algorithm>
 #include <cmath>
-#include <limits>
 #include <filesystem>
 
 #include "control/control_task.h"
@@ -97,10 +96,6 @@ std::vector<JointsView> views(const MotionSet& m) {
 std::map<std::string, double> realism(const MotionSet& m, const EvalProtocol& p) {
   std::map<std::string, double> out;
   out["foot_skating"] = evaluator_free_metrics(m, "health", p, "", nullptr).at("foot_skating");
-  // Skating with each clip's lowest toe put on the floor: how much of the figure is
-  // feet at the wrong height (the metric counts a toe below 5 cm as planted) rather
-  // than feet sliding. A diagnostic, never a target.
-  out["foot_skating_lifted"] = evaluator_free_metrics(lifted_to_floor(m), "health", p, "", nullptr).at("foot_skating");
   auto v = views(m);
   out["acceleration"] = mean_abs_acceleration(v, m.fps);
   out["bone_length_std_mm"] = bone_length_std_mm(v, m.skeleton);
@@ -288,8 +283,6 @@ HealthReport check_health(const HealthOptions& options) {
   const double fs_gen = real_gen.at("foot_skating"), fs_gt = real_gt.at("foot_skating");
   add("foot_skating", "foot skating ratio", fs_gen, fs_gt, fmt::format("<= {:g}x GT", tg.foot_skating_ratio),
       fs_gen <= tg.foot_skating_ratio * fs_gt);
-  add("foot_skating_lifted", "foot skating, each clip's lowest toe put at y = 0 (diagnostic)",
-      real_gen.at("foot_skating_lifted"), real_gt.at("foot_skating_lifted"));
   const double acc = real_gen.at("acceleration"), acc_gt = real_gt.at("acceleration");
   add("acceleration", "mean |acceleration| (m/s^2)", acc, acc_gt, fmt::format("<= {:g}x GT", tg.acceleration_ratio),
       acc <= tg.acceleration_ratio * acc_gt);
@@ -365,20 +358,6 @@ std::string json_number(double v) { return std::isfinite(v) ? fmt::format("{}", 
 std::string json_number(const std::optional<double>& v) { return v ? json_number(*v) : "null"; }
 
 }  // namespace
-
-MotionSet lifted_to_floor(const MotionSet& m) {
-  MotionSet out = m;
-  const auto toes = m.skeleton.role("toes");
-  for (size_t i = 0; i < out.size(); ++i) {
-    if (out.lengths[i] < 1 || toes.empty()) continue;
-    float lowest = std::numeric_limits<float>::infinity();
-    for (int t = 0; t < out.lengths[i]; ++t)
-      for (int j : toes) lowest = std::min(lowest, out.at(i, t, j)[1]);
-    for (int t = 0; t < out.lengths[i]; ++t)
-      for (int j = 0; j < out.num_joints(); ++j) out.at(i, t, j)[1] -= lowest;
-  }
-  return out;
-}
 
 std::string health_markdown(const HealthReport& r) {
   std::string s = fmt::format("# Prior health: `{}`\n\n", r.run_dir);

@@ -93,11 +93,6 @@ std::string default_evaluator_config(const std::string& data_path);
 // or more than the test split, too few held-out clips for the floor.
 HealthReport check_health(const HealthOptions& options);
 
-// A copy of `m` with each clip moved along y so that its lowest toe (skeleton role
-// "toes") over the valid frames is at y = 0; padding stays zero. Only for the
-// diagnostic row "foot skating, each clip's lowest toe put at y = 0".
-MotionSet lifted_to_floor(const MotionSet& m);
-
 std::string health_markdown(const HealthReport& r);
 std::string health_json(const HealthReport& r);
 // `s` as a JSON string literal (quoted, escaped): for files that embed reports.

@@ -8,7 +8,6 @@
 #include <fstream>
 
 #include "core/error.h"
-#include "data/skeleton.h"
 #include "eval/health.h"
 #include "eval/health_test_util.h"
 #include "models/flow_prior_test_util.h"
@@ -186,7 +185,7 @@ TEST_CASE("motionctl health: ground-truth self-check is clean, a random flow pri
     CHECK(h.floor_reference == "val[0:8]");
     CHECK(h.r_precision_pool == 8);  // pools capped at N
     for (const char* key : {"foot_skating", "acceleration", "bone_length_std_mm", "r_precision_top1",
-                            "r_precision_top3", "matching", "diversity", "toe_penetration_m", "foot_skating_lifted"}) {
+                            "r_precision_top3", "matching", "diversity", "toe_penetration_m"}) {
       INFO(key);
       CHECK(metric(h, key).value == *metric(h, key).ground_truth);
     }
@@ -262,7 +261,7 @@ TEST_CASE("health of the token priors (decoded samples) and the VQ tokenizer (re
   CHECK(h.generator.find("4 steps") != std::string::npos);
   CHECK(h.validation.count("val_ce_t0.50") == 1);
   CHECK(h.r_precision_pool == 4);
-  CHECK(h.metrics.size() == 13);  // 12 figures and the lifted skating diagnostic
+  CHECK(h.metrics.size() == 12);
   for (const auto& m : h.metrics) CHECK(std::isfinite(m.value));
   const std::string json = slurp(fs::path(tmd) / "health.json");
   CHECK(python_json_ok(fs::path(tmd) / "health.json"));
@@ -289,37 +288,4 @@ TEST_CASE("health of the token priors (decoded samples) and the VQ tokenizer (re
   CHECK(hg.find("reconstruction_mpjpe_m")->value == 0.0);
   CHECK(hg.find("acceleration")->value == *hg.find("acceleration")->ground_truth);
   CHECK(hg.healthy());
-}
-
-TEST_CASE("health: the lifted copy puts each clip's lowest toe on the floor and moves nothing else", "[health]") {
-  MotionSet m;
-  m.skeleton = humanml3d_skeleton();
-  m.t_max = 6;
-  const int J = m.num_joints();
-  m.lengths = {6, 4, 0};
-  m.joints.assign(3 * m.clip_stride(), 0.0f);
-  torch::manual_seed(3);
-  auto r = torch::rand({3, 6, J, 3});
-  for (size_t i = 0; i < 3; ++i)
-    for (int t = 0; t < m.lengths[i]; ++t)
-      for (int j = 0; j < J; ++j)
-        for (int a = 0; a < 3; ++a) m.at(i, t, j)[a] = r[i][t][j][a].item<float>() + (i == 1 ? -0.5f : 0.3f);
-  const auto toes = m.skeleton.role("toes");
-  MotionSet l = lifted_to_floor(m);
-  for (size_t i = 0; i < 2; ++i) {
-    float lowest = 1e9f, shift = m.at(i, 0, 0)[1] - l.at(i, 0, 0)[1];
-    for (int t = 0; t < m.lengths[i]; ++t) {
-      for (int j : toes) lowest = std::min(lowest, l.at(i, t, j)[1]);
-      for (int j = 0; j < J; ++j) {
-        CHECK(l.at(i, t, j)[0] == m.at(i, t, j)[0]);
-        CHECK(l.at(i, t, j)[2] == m.at(i, t, j)[2]);
-        CHECK(m.at(i, t, j)[1] - l.at(i, t, j)[1] == Approx(shift).margin(1e-6));
-      }
-    }
-    CHECK(lowest == Approx(0.0).margin(1e-6));
-  }
-  CHECK(m.at(0, 0, 0)[1] - l.at(0, 0, 0)[1] > 0);  // raised clips come down,
-  CHECK(m.at(1, 0, 0)[1] - l.at(1, 0, 0)[1] < 0);  // sunk clips come up
-  for (int t = m.lengths[1]; t < m.t_max; ++t) CHECK(l.at(1, t, 0)[1] == 0.0f);  // padding stays zero
-  CHECK(l.joints.size() == m.joints.size());
 }
