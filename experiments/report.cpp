@@ -959,9 +959,9 @@ std::vector<ClaimCheck> check_claims(const std::string& claims_file, const std::
       }
     }
     for (auto& [a, b] : pairs) {
+      const RowResult* ra = find_row(*t, a);
+      const RowResult* rb = find_row(*t, b);
       for (const std::string& m : metrics) {
-        const RowResult* ra = find_row(*t, a);
-        const RowResult* rb = find_row(*t, b);
         auto test = ra && rb ? test_rows(*ra, rb, m, o) : std::nullopt;
         if (!test) {
           missing = true;

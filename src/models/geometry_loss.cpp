@@ -37,6 +37,7 @@ torch::Tensor geometry_loss(const GeometryLossConfig& g, const Skeleton& sk, con
   if (g.floor.weight > 0) {
     const auto& toes = sk.role("toes");
     auto ti = torch::tensor(std::vector<int64_t>(toes.begin(), toes.end()), torch::kLong).to(dev);
+    // Per frame, not per frame pair as the slip term: a height error is one frame's.
     auto contact = (gt_height.index_select(2, ti) < g.contact_height).to(err_m.scalar_type());  // [B, T, toes]
     auto v = valid.view({valid.size(0), T, 1});
     auto ey = err_m.index_select(2, ti).select(3, 1);  // toes' height error [B, T, toes]

@@ -48,7 +48,9 @@ struct KinematicNoiseConfig : Config {
 // t -> 1 with its finite precision (the measured bone drift and sinking feet); with
 // the skip, a channel whose noise has fallen below its data scale is carried over
 // from x_t and the network writes only a correction. At t = 0 it is the clean head
-// (c_skip = 0, c_out = 1). Its own section, absent from the dump when off.
+// (c_skip = 0, c_out = 1). Measured worse on every health figure at the adopted
+// prior's recipe (docs/choices.md): off everywhere. Its own section, absent from the
+// dump when off.
 struct KinematicSkipConfig : Config {
   bool enabled = false;
   void visit(FieldVisitor& v) override {
