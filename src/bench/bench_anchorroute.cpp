@@ -118,7 +118,14 @@ void bench_anchorroute(const AnchorrouteBenchOptions& o, std::ostream& out) {
     const int reps = 5;
     for (int r = 0; r <= reps; ++r) {
       auto t0 = Clock::now();
-      AdapterInputs in{ids, t, text, valid, feats};
+      auto f = feats;
+      if (a.cfg.features.feedback.enabled) {  // the feedback estimate is part of every call's cost
+        f = feats.clone();
+        std::vector<AnchorSet> bs(sets.begin(), sets.begin() + batch);
+        fill_feedback_features(f, bs, frozen_soft_estimate(*a.prior, ids, t, text, valid), a.prior->skeleton(),
+                               a.cfg.body_joints, a.cfg.features);
+      }
+      AdapterInputs in{ids, t, text, valid, f};
       auto h = a.module->guided_hooks(in, a.prior->null_texts(batch, text.memory.size(1)));
       h.guidance = arc->guidance.hooks();
       a.prior->guided_logits(ids, t, text, valid, sc.cfg_scale, &h);

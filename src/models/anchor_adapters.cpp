@@ -17,6 +17,7 @@
 #include "models/flow_transformer.h"
 #include "models/token_prior.h"
 #include "control/anchor_loss.h"
+#include "control/anchor_feedback.h"
 #include "core/trained_runs.h"
 #include "models/trainable.h"
 #include "models/trained_run.h"
@@ -68,6 +69,14 @@ void AdapterFeatureConfig::visit(FieldVisitor& v) {
     "(ours: speed, turn rate, vertical speed, height and the next/previous anchor in the frame of the "
     "interpolation prior's own path, invariant to rotating and moving the anchor set; docs/choices.md) or both",
     one_of({"world", "path", "both"}));
+  v("feedback", feedback, "ours: feedback channels against the frozen prior's own estimate (see feedback.enabled)");
+}
+
+void AdapterFeedbackConfig::visit(FieldVisitor& v) {
+  v("enabled", enabled,
+    "ours, not the paper: add the anchors' residual and bearing against the frozen prior's soft estimate of the "
+    "clean motion at the current tokens, in the estimate's facing frame, recomputed at every network call "
+    "(control/anchor_feedback.h; one more frozen forward per call; docs/choices.md)");
 }
 
 void AnchorAdapterConfig::visit(FieldVisitor& v) {
@@ -126,6 +135,7 @@ int64_t adapter_feature_width(const std::vector<int>& body_joints, const Adapter
     if (features.world()) w += layout.width();
     if (features.path()) w += path_feature_width(layout);
   }
+  if (features.feedback.enabled) w += kFeedbackWidth;
   return w;
 }
 
@@ -157,6 +167,34 @@ torch::Tensor adapter_features(const AnchorSet& set, const std::vector<int>& bod
   for (int i = 0; i < 3; ++i)
     if (set.family == kFamilies[i]) out.select(1, col + i).fill_(1.0);
   return out;
+}
+
+torch::Tensor frozen_soft_estimate(const TokenPrior& prior, const torch::Tensor& ids, const torch::Tensor& t,
+                                   const TextContext& text, const torch::Tensor& valid) {
+  torch::NoGradGuard ng;
+  const int64_t B = ids.size(0), L = ids.size(1), J = prior.num_joints();
+  auto logits = prior.raw_logits(ids, t, text, valid);
+  VqTokenizer handle = prior.tokenizer().model;
+  auto& tok = *handle;
+  return tok.denormalize(tok.soft_decode(torch::softmax(logits, -1)).view({B, L * prior.stride(), J, 3}))
+      .to(torch::kCPU, torch::kFloat32)
+      .contiguous();
+}
+
+void fill_feedback_features(torch::Tensor& feats, const std::vector<AnchorSet>& sets, const torch::Tensor& estimate,
+                            const Skeleton& skeleton, const std::vector<int>& body_joints,
+                            const AdapterFeatureConfig& features) {
+  if (!features.feedback.enabled) return;
+  const int64_t col = adapter_feature_width(body_joints, features) - kFeedbackWidth;
+  auto est = estimate.to(torch::kCPU, torch::kFloat32).contiguous();
+  for (size_t b = 0; b < sets.size(); ++b) {
+    const int T = sets[b].frames;
+    if (T == 0 || sets[b].size() == 0) continue;
+    auto e = est[static_cast<int64_t>(b)];
+    FeatureMatrix m = anchor_feedback_features(sets[b], e.data_ptr<float>(), static_cast<int>(e.size(0)), skeleton);
+    feats[static_cast<int64_t>(b)].narrow(0, 0, T).narrow(1, col, kFeedbackWidth)
+        .copy_(torch::from_blob(m.data(), {T, kFeedbackWidth}, torch::kFloat32));
+  }
 }
 
 // ---------------------------------------------------------------- helpers
@@ -605,14 +643,20 @@ class AnchorAdapterTrainer : public Trainable {
     xin = shard.local(xin);
     tt = shard.local(tt);
     auto text = prior_->encode_texts(shard.local(caps_whole));
+    const TextContext caption_text = text;  // the feedback estimate reads the caption, as at sampling
     {
       torch::NoGradGuard ng;
       text = prior_->net()->drop_condition(text, shard.local(drop).to(dev));
     }
     auto feats = torch::zeros({B, Tp, adapter_feature_width(cfg_.body_joints, cfg_.features)});
-    if (!zero_features)
+    if (!zero_features) {
       for (int64_t b = 0; b < B; ++b)
         feats[b].narrow(0, 0, sets[b].frames).copy_(adapter_features(sets[b], cfg_.body_joints, cfg_.features));
+      // Feedback (ours): the anchors against the frozen prior's own estimate at the corrupted tokens.
+      if (cfg_.features.feedback.enabled)
+        fill_feedback_features(feats, sets, frozen_soft_estimate(*prior_, xin, tt, caption_text, valid),
+                               prior_->skeleton(), cfg_.body_joints, cfg_.features);
+    }
     AdapterInputs in{xin, tt, text, valid, feats.to(dev)};
     auto hooks = adapter_->hooks(in);
     auto logits = prior_->net()->transformer->forward(xin, tt, text, valid, &hooks).logits;  // [B, L, K]

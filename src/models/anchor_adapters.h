@@ -16,6 +16,7 @@
 namespace mc {
 
 class TokenPrior;
+struct Skeleton;
 
 // AnchorKV's memory attention (issue 15). The defaults are eq. (15) as written (one
 // softmax over [K; K^s], every token sees every memory slot) and are left out of the
@@ -49,6 +50,16 @@ struct AdapterTrainingConfig : Config {
   bool omitted_from_dump() const override { return t_power == 1.0 && !zero_features; }
 };
 
+// Feedback channels (issue 15, ours; control/anchor_feedback.h): the anchors said against
+// the frozen prior's own soft estimate of the clean motion at the current tokens, in the
+// estimate's facing frame, recomputed at every network call (one more frozen forward and
+// soft decode per call). Off by default and then left out of the dump.
+struct AdapterFeedbackConfig : Config {
+  bool enabled = false;
+  void visit(FieldVisitor& v) override;
+  bool omitted_from_dump() const override { return !enabled; }
+};
+
 // The adapter's input features (issue 15). `delta_scale`: eq. (6)'s path difference Delta p
 // is in metres per frame (~0.02 at 20 fps) beside positions of metres. `frame`: the
 // world-frame features of eqs. (5)-(6) (world), or the same anchors said in the frame of
@@ -58,10 +69,11 @@ struct AdapterTrainingConfig : Config {
 struct AdapterFeatureConfig : Config {
   double delta_scale = 1.0;     // multiplies every world Delta p channel (20 = metres per second at 20 fps)
   std::string frame = "world";  // world (eqs. (5)-(6)) | path (ours) | both
+  AdapterFeedbackConfig feedback;
   void visit(FieldVisitor& v) override;
   bool world() const { return frame != "path"; }
   bool path() const { return frame != "world"; }
-  bool omitted_from_dump() const override { return delta_scale == 1.0 && frame == "world"; }
+  bool omitted_from_dump() const override { return delta_scale == 1.0 && frame == "world" && !feedback.enabled; }
 };
 
 // `model:` section of a controlled-training run (model.type = anchor_adapter).
@@ -105,10 +117,23 @@ struct AnchorAdapterConfig : Config, DeclaresDependencies {
 // serves every family. features.frame picks the blocks: world = eqs. (5)-(6), width
 // 11 + 8 + (3 * 3G + 2G) + 3 for G body joints; path = anchor_path_features, width
 // 14 + 10 + 17G + 3; both = the world blocks, then the path blocks, then the one-hot.
+// features.feedback adds kFeedbackWidth channels last (after the one-hot).
 int64_t adapter_feature_width(const std::vector<int>& body_joints, const AdapterFeatureConfig& features = {});
 // [frames, width] float CPU. UserError if a body-point anchor's joint is not in body_joints.
+// The feedback block (if any) is left 0: it needs an estimate (fill_feedback_features).
 torch::Tensor adapter_features(const AnchorSet& set, const std::vector<int>& body_joints,
                                const AdapterFeatureConfig& features = {});
+
+// Feedback (features.feedback): the frozen prior's soft estimate of the clean motion at
+// tokens `ids` (no adapter): softmax of its logits -> expected code embedding -> frozen
+// decoder (eq. (12)'s soft decode) -> world metres [B, L * stride, J, 3], CPU, no grad.
+torch::Tensor frozen_soft_estimate(const TokenPrior& prior, const torch::Tensor& ids, const torch::Tensor& t,
+                                   const TextContext& text, const torch::Tensor& valid);
+// Writes the feedback block of feats [B, >= frames, width] (CPU) for row b = sets[b]
+// from estimate [B, >= frames, J, 3]; no-op when features.feedback is off.
+void fill_feedback_features(torch::Tensor& feats, const std::vector<AnchorSet>& sets, const torch::Tensor& estimate,
+                            const Skeleton& skeleton, const std::vector<int>& body_joints,
+                            const AdapterFeatureConfig& features);
 
 // ---------------------------------------------------------------- modules
 

@@ -86,7 +86,16 @@ class AnchorRouteGenerator : public MotionGenerator {
       hooks = [&, dev](int64_t start, const torch::Tensor& ids, const torch::Tensor& t, const TextContext& text,
                        const torch::Tensor& valid) {
         const int64_t B = ids.size(0), L = ids.size(1);
-        AdapterInputs in{ids, t, text, valid, feats.narrow(0, start, B).narrow(1, 0, L * s).to(dev)};
+        auto f = feats.narrow(0, start, B).narrow(1, 0, L * s);
+        if (acfg_.features.feedback.enabled && !acfg_.training.zero_features) {
+          // Feedback (ours): the anchors against the frozen prior's estimate at the current
+          // tokens, from the caption (the conditional call's text), as in training.
+          f = f.clone();
+          std::vector<AnchorSet> bs(sets.begin() + start, sets.begin() + start + B);
+          fill_feedback_features(f, bs, frozen_soft_estimate(*prior_, ids, t, text, valid), prior_->skeleton(),
+                                 acfg_.body_joints, acfg_.features);
+        }
+        AdapterInputs in{ids, t, text, valid, f.to(dev)};
         // The CFG null-text pass gets hooks computed on the null text when they read it.
         auto h = adapter_->guided_hooks(in, prior_->null_texts(B, text.memory.size(1)));
         h.guidance = guidance_.hooks();

@@ -161,6 +161,16 @@ TEST_CASE("adapter features in the path frame: path blocks alone or after the wo
   CHECK(dump_config(c).find("features") == std::string::npos);
   c.features.frame = "path";
   CHECK(dump_config(c).find("frame: \"path\"") != std::string::npos);
+  // The feedback switch (ours) is left out too until it is on (shipped runs keep their hashes).
+  CHECK(dump_config(c).find("feedback") == std::string::npos);
+  c.features.feedback.enabled = true;
+  CHECK(dump_config(c).find("feedback") != std::string::npos);
+  CHECK(adapter_feature_width(bj, c.features) == 14 + 10 + 17 * 6 + 3 + 17);
+  // adapter_features leaves the feedback block (last) at 0: it needs an estimate.
+  auto set = draw_anchor_set(AnchorFamily::root_3d, 4, motion.data(), 40, 22, rng, bj);
+  auto f = adapter_features(set, bj, c.features);
+  CHECK(f.narrow(1, f.size(1) - 17, 17).abs().sum().item<double>() == 0.0);
+  CHECK(torch::equal(f.narrow(1, 0, f.size(1) - 17), adapter_features(set, bj, path)));
 }
 
 TEST_CASE("AnchorKV: one LayerKV per block, token-aligned [B, L, width], values zero at init", "[anchorkv]") {

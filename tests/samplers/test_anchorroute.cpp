@@ -7,6 +7,7 @@
 #include <chrono>
 #include <cmath>
 
+#include "control/anchor_feedback.h"
 #include "control/anchors.h"
 #include "control/control_task.h"
 #include "control/linear_observation.h"
@@ -275,4 +276,74 @@ TEST_CASE("AnchorRoute + exact projection: anchors, floor and directions hold on
   CHECK(worst_angle < 0.1);
   CHECK(control_error(exact, tasks, set.skeleton) < 1e-4);
   CHECK(control_error(plain, tasks, set.skeleton) > 1e-3);  // RS5 alone is not exact
+}
+
+TEST_CASE("feedback features (ours): an adapter reading them trains, logs its twin figures and samples "
+          "deterministically; the feedback channels follow the tokens",
+          "[anchorkv][feedback]") {
+  TempDir tmp("anchorroute_feedback");
+  const std::string data = (tmp.path / "fx.h5").string(), root = (tmp.path / "runs").string();
+  REQUIRE(run_motionctl(fmt::format("fixture configs/data/smoke.yaml output={} fixture.num_clips=40", data))
+              .exit_code == 0);
+  std::vector<std::string> common = {"data.path=" + data, "run.root=" + root, "run.threads=1", "run.log_every=50",
+                                     "run.checkpoint_every=1000"};
+  auto ov = [&](std::vector<std::string> more) {
+    auto v = common;
+    v.insert(v.end(), more.begin(), more.end());
+    return v;
+  };
+  auto tok = run_train("configs/tokenizer/vq_tiny.yaml", ov({"optim.steps=20", "optim.warmup=5", "model.width=32",
+                                                             "model.code_dim=32", "model.codebook_size=32"}));
+  auto tmd = run_train("configs/tmd/tmd_tiny.yaml",
+                       ov({"optim.steps=10", "optim.warmup=2", "model.width=64", "model.heads=2",
+                           "model.text_width=32", "model.text_ff=64", "model.eval_t=[0.5]",
+                           "model.tokenizer_run=" + tok.run_dir.string()}));
+  auto adapter = run_train("configs/adapter/anchorkv_tiny.yaml",
+                           ov({"optim.steps=20", "optim.warmup=2", "optim.batch_size=8", "model.rank=4",
+                               "model.anchorkv.normaliser=own", "model.anchorkv.window=1",
+                               "model.features.feedback.enabled=true", "model.tmd_run=" + tmd.run_dir.string()}));
+  for (auto k : {"val_soft_control_error_t01", "val_soft_control_error_t01_zeroed"}) {
+    REQUIRE(adapter.summary.count(k) == 1);
+    CHECK(std::isfinite(adapter.summary.at(k)));
+  }
+  CHECK(slurp(adapter.run_dir / "config.yaml").find("feedback") != std::string::npos);
+  auto loaded = load_anchor_adapter(adapter.run_dir.string());
+  REQUIRE(loaded.cfg.features.feedback.enabled);
+
+  // The feedback block depends on the tokens through the frozen prior's estimate; the
+  // anchor blocks do not.
+  auto ds = MotionDataset::load(data);
+  const MotionSet& set = ds->set();
+  auto tasks = protocol_tasks("anchors", "families: [root_3d, body_point]\nanchor_counts: [4]\n", set, {0, 1}, 3);
+  std::vector<AnchorSet> sets;
+  for (auto& t : tasks) sets.push_back(anchors_from_spec(t.spec, t.length, set.skeleton, t.source.data()));
+  const int64_t s = loaded.prior->stride(), L = (set.t_max + s - 1) / s;
+  const int64_t W = adapter_feature_width(loaded.cfg.body_joints, loaded.cfg.features);
+  auto base = torch::zeros({2, L * s, W});
+  for (int b = 0; b < 2; ++b)
+    base[b].narrow(0, 0, sets[b].frames).copy_(adapter_features(sets[b], loaded.cfg.body_joints, loaded.cfg.features));
+  auto valid = torch::ones({2, L}, torch::kBool);
+  auto text = loaded.prior->encode_texts({tasks[0].caption, tasks[1].caption});
+  auto t = torch::full({2}, 0.5);
+  auto fa = base.clone(), fb = base.clone();
+  torch::manual_seed(1);
+  auto ids_a = torch::randint(0, loaded.prior->codebook_size(), {2, L}, torch::kInt64);
+  auto ids_b = torch::randint(0, loaded.prior->codebook_size(), {2, L}, torch::kInt64);
+  fill_feedback_features(fa, sets, frozen_soft_estimate(*loaded.prior, ids_a, t, text, valid), loaded.prior->skeleton(),
+                         loaded.cfg.body_joints, loaded.cfg.features);
+  fill_feedback_features(fb, sets, frozen_soft_estimate(*loaded.prior, ids_b, t, text, valid), loaded.prior->skeleton(),
+                         loaded.cfg.body_joints, loaded.cfg.features);
+  const int64_t fw = kFeedbackWidth;
+  CHECK(torch::equal(fa.narrow(2, 0, W - fw), base.narrow(2, 0, W - fw)));
+  CHECK(base.narrow(2, W - fw, fw).abs().sum().item<double>() == 0.0);
+  CHECK(fa.narrow(2, W - fw, fw).abs().sum().item<double>() > 0.0);
+  CHECK(!torch::allclose(fa.narrow(2, W - fw, fw), fb.narrow(2, W - fw, fw)));
+  // Past a clip's length the block stays 0.
+  if (sets[0].frames < L * s) CHECK(fa[0].narrow(0, sets[0].frames, L * s - sets[0].frames).abs().sum().item<double>() == 0.0);
+
+  auto gen = make_generator(fmt::format("adapter_run: {}\nsampler: {{steps: 4, batch_size: 2}}\nroute: {{steps: 0}}\n",
+                                        adapter.run_dir.string()));
+  auto g1 = gen->generate(tasks, 5), g2 = gen->generate(tasks, 5);
+  CHECK(torch::isfinite(g1.world).all().item<bool>());
+  CHECK(torch::equal(g1.world, g2.world));
 }
