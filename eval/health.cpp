@@ -20,6 +20,7 @@
 #include "eval/t2m_evaluator.h"
 #include "samplers/motion_generator.h"
 #include "train/dependencies.h"
+#include "train/dependency_record.h"
 #include "train/train_job.h"
 #include "train/trainer.h"
 
@@ -214,6 +215,8 @@ HealthReport check_health(const HealthOptions& options) {
   if (!fs::exists(resolve_data_path(ev_cfg))) fail("evaluator config '{}' does not exist", ev_cfg);
   TrainResult ev_run = run_train(resolve_data_path(ev_cfg), opt.evaluator_overrides);
   rep.evaluator_run = ev_run.run_dir.string();
+  rep.evaluator_sha1 = weights_sha1(rep.evaluator_run);
+  if (!opt.ground_truth) rep.run_sha1 = weights_sha1(opt.run_dir);
   T2MEvaluator ev = T2MEvaluator::load(rep.evaluator_run);
 
   // ---- samples: the registry's generator for the model type (or the ground truth)
@@ -415,6 +418,8 @@ std::string health_json(const HealthReport& r) {
   field("r_precision_pool", std::to_string(r.r_precision_pool));
   field("repeats", std::to_string(r.repeats));
   field("options_hash", json_string(r.options_hash));
+  field("run_sha1", json_string(r.run_sha1));
+  field("evaluator_sha1", json_string(r.evaluator_sha1));
   s += "  \"metrics\": [\n";
   for (size_t i = 0; i < r.metrics.size(); ++i) {
     const auto& m = r.metrics[i];
@@ -450,6 +455,9 @@ HealthReport read_health_json(const std::string& path) {
     r.r_precision_pool = n["r_precision_pool"].as<int>();
     r.repeats = n["repeats"].as<int>();
     r.options_hash = n["options_hash"].as<std::string>();
+    // Reports written before the fingerprints have none: "" (never reused by reproduce).
+    if (n["run_sha1"]) r.run_sha1 = n["run_sha1"].as<std::string>();
+    if (n["evaluator_sha1"]) r.evaluator_sha1 = n["evaluator_sha1"].as<std::string>();
     for (const auto& m : n["metrics"]) {
       HealthMetric h;
       h.key = m["key"].as<std::string>();

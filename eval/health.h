@@ -70,6 +70,10 @@ struct HealthReport {
   std::string reference;        // which clips are the reference, e.g. "test[0:32]"
   std::string floor_reference;  // the held-out clips of the floor, e.g. "val[0:32]"
   std::string options_hash;     // config_hash of the options (reproduce reuses a matching report)
+  // SHA-1 of the checked run's and the evaluator's checkpoints/final.pt when the check ran
+  // ("" when there is none): a report is reused only while both weights are the same
+  // (the options name the evaluator's config, not its weights, which a retraining changes).
+  std::string run_sha1, evaluator_sha1;
   bool ground_truth = false;    // the ground_truth self-check, not the run's samples
   int samples = 0, r_precision_pool = 0, repeats = 0;
   int64_t seed = 0;

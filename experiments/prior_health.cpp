@@ -11,6 +11,7 @@
 #include "core/atomic_file.h"
 #include "core/error.h"
 #include "core/run_dir.h"
+#include "train/dependency_record.h"
 
 namespace mc {
 namespace fs = std::filesystem;
@@ -120,7 +121,11 @@ const ComponentHealth& ProfileHealth::check(const std::string& run_dir, const st
     if (fs::exists(cached)) {
       try {
         HealthReport r = read_health_json(cached.string());
-        if (r.options_hash == config_hash(o)) c.report = r;
+        // Same options, and the same weights of the run and of the evaluator it was scored
+        // with (a retrained evaluator keeps its config and path but moves every FID).
+        if (r.options_hash == config_hash(o) && !r.evaluator_sha1.empty() &&
+            r.evaluator_sha1 == weights_sha1(r.evaluator_run) && r.run_sha1 == weights_sha1(run_dir))
+          c.report = r;
       } catch (const UserError&) {  // unreadable: check again
       }
     }

@@ -6,6 +6,7 @@
 
 #include <fstream>
 
+#include "core/atomic_file.h"
 #include "eval/health_test_util.h"
 #include "experiments/prior_health.h"
 #include "experiments/report.h"
@@ -118,6 +119,26 @@ TEST_CASE("reproduce's prior health: table tops name the verdict, health.md/json
   ProfileHealth again(pf, data);
   CHECK(again.table_line(t) == t.health);
   CHECK(fs::last_write_time(prior / "health.json") == stamp);
+  // A report scored with other evaluator weights (a retrained evaluator at the same path)
+  // is checked again; so is one written before the fingerprints.
+  {
+    std::string js = slurp(prior / "health.json");
+    const std::string key = "\"evaluator_sha1\": \"";
+    const size_t at = js.find(key);
+    REQUIRE(at != std::string::npos);
+    REQUIRE(js.compare(at + key.size(), 1, "\"") != 0);  // a fingerprint was recorded
+    js.replace(at + key.size(), 4, "0000");
+    write_file_atomic(prior / "health.json", js);
+    const auto edited = fs::last_write_time(prior / "health.json");
+    ProfileHealth other_evaluator(pf, data);
+    CHECK(other_evaluator.table_line(t) == t.health);
+    CHECK(fs::last_write_time(prior / "health.json") != edited);
+    CHECK(slurp(prior / "health.json").find(key + "0000") == std::string::npos);
+  }
+  const auto rechecked = fs::last_write_time(prior / "health.json");
+  ProfileHealth reused(pf, data);
+  reused.table_line(t);
+  CHECK(fs::last_write_time(prior / "health.json") == rechecked);
   pf.profile.seed = 2;
   ProfileHealth reseeded(pf, data);
   reseeded.table_line(t);
