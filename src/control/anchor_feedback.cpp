@@ -1,6 +1,8 @@
 // Feedback features (issue 15, ours): see anchor_feedback.h.
 #include "control/anchor_feedback.h"
 
+#include <cmath>
+#include <cstdlib>
 #include <map>
 
 #include "core/error.h"
@@ -50,29 +52,23 @@ FeatureMatrix anchor_feedback_features(const AnchorSet& set, const float* estima
     out(t, col + 1) = static_cast<float>(v[1]);
     out(t, col + 2) = static_cast<float>(z);
   };
+  // One side's block: residual, bearing, |f - t| in seconds and a presence flag from column `col`.
+  auto side = [&](int f, int t, int col) {
+    double res[3], bear[3];
+    terms(f, t, res, bear);
+    put(t, col, res);
+    put(t, col + 3, bear);
+    out(t, col + 6) = static_cast<float>(std::abs(f - t) / kPathFrameRate);
+    out(t, col + 7) = 1.0f;
+  };
   size_t next = 0;  // index of the first anchor frame >= t
   for (int t = 0; t < T; ++t) {
     while (next < frames.size() && frames[next] < t) ++next;
-    double res[3], bear[3];
-    if (next < frames.size()) {
-      const int f = frames[next];
-      terms(f, t, res, bear);
-      put(t, 0, res);
-      put(t, 3, bear);
-      out(t, 6) = static_cast<float>((f - t) / kPathFrameRate);
-      out(t, 7) = 1.0f;
-      if (f == t) out(t, 16) = 1.0f;
-    }
     const bool at = next < frames.size() && frames[next] == t;
+    if (next < frames.size()) side(frames[next], t, 0);
     const long prev = at ? static_cast<long>(next) : static_cast<long>(next) - 1;
-    if (prev >= 0) {
-      const int f = frames[prev];
-      terms(f, t, res, bear);
-      put(t, 8, res);
-      put(t, 11, bear);
-      out(t, 14) = static_cast<float>((t - f) / kPathFrameRate);
-      out(t, 15) = 1.0f;
-    }
+    if (prev >= 0) side(frames[prev], t, 8);
+    if (at) out(t, 16) = 1.0f;
   }
   return out;
 }

@@ -218,25 +218,37 @@ TEST_CASE("AnchorRoute end to end: on held-out clips AnchorKV beats its zeroed-f
   WARN("AnchorRoute end to end: " << secs << " s");
 }
 
-TEST_CASE("AnchorRoute + exact projection: anchors, floor and directions hold on a tiny TMD (issue 20)",
-          "[anchorkv][inequality]") {
-  TempDir tmp("anchorroute_exact");
-  const std::string data = (tmp.path / "fx.h5").string(), root = (tmp.path / "runs").string();
-  REQUIRE(run_motionctl(fmt::format("fixture configs/data/smoke.yaml output={} fixture.num_clips=40", data))
-              .exit_code == 0);
-  std::vector<std::string> common = {"data.path=" + data, "run.root=" + root, "run.threads=1", "run.log_every=50",
-                                     "run.checkpoint_every=1000"};
-  auto ov = [&](std::vector<std::string> more) {
-    auto v = common;
+// A 40-clip smoke fixture with a barely trained tiny tokenizer and TMD prior on it, for
+// tests that need real runs but not a useful prior.
+struct TinyTokenStack {
+  explicit TinyTokenStack(const std::string& name) : tmp(name) {
+    data = (tmp.path / "fx.h5").string();
+    root = (tmp.path / "runs").string();
+    REQUIRE(run_motionctl(fmt::format("fixture configs/data/smoke.yaml output={} fixture.num_clips=40", data))
+                .exit_code == 0);
+    tok = run_train("configs/tokenizer/vq_tiny.yaml", ov({"optim.steps=20", "optim.warmup=5", "model.width=32",
+                                                          "model.code_dim=32", "model.codebook_size=32"}));
+    tmd = run_train("configs/tmd/tmd_tiny.yaml",
+                    ov({"optim.steps=10", "optim.warmup=2", "model.width=64", "model.heads=2", "model.text_width=32",
+                        "model.text_ff=64", "model.eval_t=[0.5]", "model.tokenizer_run=" + tok.run_dir.string()}));
+  }
+  // The run overrides every training here shares, then `more`.
+  std::vector<std::string> ov(std::vector<std::string> more) const {
+    std::vector<std::string> v = {"data.path=" + data, "run.root=" + root, "run.threads=1", "run.log_every=50",
+                                  "run.checkpoint_every=1000"};
     v.insert(v.end(), more.begin(), more.end());
     return v;
-  };
-  auto tok = run_train("configs/tokenizer/vq_tiny.yaml", ov({"optim.steps=20", "optim.warmup=5", "model.width=32",
-                                                             "model.code_dim=32", "model.codebook_size=32"}));
-  auto tmd = run_train("configs/tmd/tmd_tiny.yaml",
-                       ov({"optim.steps=10", "optim.warmup=2", "model.width=64", "model.heads=2",
-                           "model.text_width=32", "model.text_ff=64", "model.eval_t=[0.5]",
-                           "model.tokenizer_run=" + tok.run_dir.string()}));
+  }
+  TempDir tmp;
+  std::string data, root;
+  TrainResult tok, tmd;
+};
+
+TEST_CASE("AnchorRoute + exact projection: anchors, floor and directions hold on a tiny TMD (issue 20)",
+          "[anchorkv][inequality]") {
+  TinyTokenStack stack("anchorroute_exact");
+  const std::string& data = stack.data;
+  const TrainResult& tmd = stack.tmd;
   auto ds = MotionDataset::load(data);
   const MotionSet& set = ds->set();
   // Root-3D anchors with headings and facings from the ground truth, plus a floor.
@@ -281,23 +293,10 @@ TEST_CASE("AnchorRoute + exact projection: anchors, floor and directions hold on
 TEST_CASE("feedback features (ours): an adapter reading them trains, logs its twin figures and samples "
           "deterministically; the feedback channels follow the tokens",
           "[anchorkv][feedback]") {
-  TempDir tmp("anchorroute_feedback");
-  const std::string data = (tmp.path / "fx.h5").string(), root = (tmp.path / "runs").string();
-  REQUIRE(run_motionctl(fmt::format("fixture configs/data/smoke.yaml output={} fixture.num_clips=40", data))
-              .exit_code == 0);
-  std::vector<std::string> common = {"data.path=" + data, "run.root=" + root, "run.threads=1", "run.log_every=50",
-                                     "run.checkpoint_every=1000"};
-  auto ov = [&](std::vector<std::string> more) {
-    auto v = common;
-    v.insert(v.end(), more.begin(), more.end());
-    return v;
-  };
-  auto tok = run_train("configs/tokenizer/vq_tiny.yaml", ov({"optim.steps=20", "optim.warmup=5", "model.width=32",
-                                                             "model.code_dim=32", "model.codebook_size=32"}));
-  auto tmd = run_train("configs/tmd/tmd_tiny.yaml",
-                       ov({"optim.steps=10", "optim.warmup=2", "model.width=64", "model.heads=2",
-                           "model.text_width=32", "model.text_ff=64", "model.eval_t=[0.5]",
-                           "model.tokenizer_run=" + tok.run_dir.string()}));
+  TinyTokenStack stack("anchorroute_feedback");
+  const std::string& data = stack.data;
+  const TrainResult& tmd = stack.tmd;
+  auto ov = [&](std::vector<std::string> more) { return stack.ov(std::move(more)); };
   auto adapter = run_train("configs/adapter/anchorkv_tiny.yaml",
                            ov({"optim.steps=20", "optim.warmup=2", "optim.batch_size=8", "model.rank=4",
                                "model.anchorkv.normaliser=own", "model.anchorkv.window=1",
