@@ -291,7 +291,7 @@ TEST_CASE("AnchorRoute + exact projection: anchors, floor and directions hold on
 }
 
 TEST_CASE("feedback features (ours): an adapter reading them trains, logs its twin figures and samples "
-          "deterministically; the feedback channels follow the tokens",
+          "deterministically, and the feedback channels follow the tokens",
           "[anchorkv][feedback]") {
   TinyTokenStack stack("anchorroute_feedback");
   const std::string& data = stack.data;
