@@ -345,4 +345,29 @@ TEST_CASE("feedback features (ours): an adapter reading them trains, logs its tw
   auto g1 = gen->generate(tasks, 5), g2 = gen->generate(tasks, 5);
   CHECK(torch::isfinite(g1.world).all().item<bool>());
   CHECK(torch::equal(g1.world, g2.world));
+
+  // The generator fills the feedback block from the current tokens at every step: its
+  // samples are sample_tmd's with hooks that do so, and differ from the block left at 0.
+  TmdSamplerConfig sc;
+  sc.steps = 4;
+  sc.batch_size = 2;
+  std::vector<std::string> caps = {tasks[0].caption, tasks[1].caption};
+  std::vector<int> lens = {tasks[0].length, tasks[1].length};
+  auto by_hand = [&](bool feedback) {
+    TokenHooksFn hooks = [&](int64_t start, const torch::Tensor& ids, const torch::Tensor& tv, const TextContext& tx,
+                             const torch::Tensor& vd) {
+      const int64_t B = ids.size(0), Lc = ids.size(1);
+      auto f = base.narrow(0, start, B).narrow(1, 0, Lc * s).clone();
+      if (feedback) {
+        std::vector<AnchorSet> bs(sets.begin() + start, sets.begin() + start + B);
+        fill_feedback_features(f, bs, frozen_soft_estimate(*loaded.prior, ids, tv, tx, vd), loaded.prior->skeleton(),
+                               loaded.cfg.body_joints, loaded.cfg.features);
+      }
+      AdapterInputs in{ids, tv, tx, vd, f};
+      return loaded.module->guided_hooks(in, loaded.prior->null_texts(B, tx.memory.size(1)));
+    };
+    return sample_tmd(*loaded.prior, caps, lens, sc, 5, hooks).world;
+  };
+  CHECK(torch::equal(by_hand(true), g1.world));
+  CHECK_FALSE(torch::equal(by_hand(false), g1.world));
 }
