@@ -57,6 +57,31 @@ void AdapterTrainingConfig::visit(FieldVisitor& v) {
   v("zero_features", zero_features,
     "audit twin: train (and validate) with all-zero adapter features, i.e. no anchor information; with the same "
     "seed it draws the same batches, times and anchors as its real-feature twin");
+  v("rollout", rollout, "ours: train a fraction of batches on the sampler's own states (see rollout.prob)");
+}
+
+void AdapterRolloutConfig::visit(FieldVisitor& v) {
+  v("prob", prob,
+    "ours, not the paper: fraction of training batches whose input tokens are the TMD sampler's own state at "
+    "t_k = k / steps (k uniform in 1..steps-1), reached with the adapter being trained (no gradient), the "
+    "clip's caption and anchors; targets stay the clip's ground-truth tokens (0 = eq. (19) only)",
+    in_range(0.0, 1.0));
+  v("steps", steps, "the rollout sampler's steps (its grid t_k = k / steps); cost: up to steps - 1 CFG calls "
+    "per rolled-out batch", in_range(2, 1000));
+  v("cfg_scale", cfg_scale, "the rollout sampler's classifier-free guidance on logits", in_range(0.0, 100.0));
+  v("val_clips", val_clips, "validation: the first val clips sampled to the end by the rollout sampler "
+    "(val_rollout_control_error: generator-only anchor error of the hard decode)", at_least(1));
+  v("loss", loss, "the loss of a rollout batch (default: eq. (16), as on path batches)");
+}
+
+void AdapterRolloutLossConfig::visit(FieldVisitor& v) {
+  v("ce_weight", ce_weight,
+    "weight of the CE toward the clip's ground-truth tokens on a rollout batch (from a state that has already "
+    "decided another gait or heading the exact tokens are unpredictable, and their CE teaches blurred proposals)",
+    in_range(0.0, 100.0));
+  v("anchor_weight", anchor_weight,
+    "weight of the anchor loss (eq. (10), soft decode of the logits at the rollout state) on a rollout batch; "
+    "-1 = model.lambda_anc", in_range(-1.0, 1000.0));
 }
 
 void AdapterFeatureConfig::visit(FieldVisitor& v) {
@@ -520,9 +545,25 @@ class AnchorAdapterTrainer : public Trainable {
     auto t = torch::rand({B});
     if (cfg_.training.t_power != 1.0) t = t.pow(cfg_.training.t_power);  // low-t emphasis
     auto drop = torch::rand({B}) < cfg_.cond_drop;
-    auto r = controlled_loss(idx, caps, sets, t, drop, nullptr, cfg_.training.zero_features, shard);
+    // Rollout states (ours): drawn for the whole batch, and only when enabled, so runs
+    // without them keep their random stream.
+    Rollout ro;
+    const auto& rc = cfg_.training.rollout;
+    if (rc.prob > 0) {
+      ro.on = torch::rand({1}).item<double>() < rc.prob;
+      ro.k = torch::randint(1, rc.steps, {1}).item<int64_t>();
+      auto s = torch::randint(0, int64_t{1} << 62, {B}, torch::kInt64);
+      ro.seeds.assign(s.data_ptr<int64_t>(), s.data_ptr<int64_t>() + B);
+    }
+    auto r = controlled_loss(idx, caps, sets, t, drop, nullptr, cfg_.training.zero_features, shard, &ro);
     LossOutput out;
     out.loss = cfg_.lambda_anc > 0 ? r.ce + cfg_.lambda_anc * r.anc : r.ce;  // eq. (16)
+    if (ro.on) {
+      // A rollout batch (ours): its own weights when rollout.loss sets them.
+      const auto& lw = rc.loss;
+      const double wa = lw.anchor_weight < 0 ? cfg_.lambda_anc : lw.anchor_weight;
+      out.loss = lw.ce_weight * r.ce + (wa > 0 ? wa * r.anc : torch::zeros_like(r.ce));
+    }
     out.parts = {{"ce", r.ce.detach()}, {"anc", r.anc.detach()}, {"ctrl_err", r.ctrl}};
     return out;
   }
@@ -563,14 +604,18 @@ class AnchorAdapterTrainer : public Trainable {
     };
     const bool z = cfg_.training.zero_features;
     auto mid = pass(0.5, z), low = pass(0.1, z), low0 = pass(0.1, true);
+    std::map<std::string, double> extra;
+    if (cfg_.training.rollout.prob > 0) extra["val_rollout_control_error"] = rollout_validation(idx);
     adapter_->train();
-    return {{"val_ce", mid.ce / mid.n},
+    std::map<std::string, double> out = {{"val_ce", mid.ce / mid.n},
             {"val_soft_control_error", mid.ctrl / mid.n},
             {"val_ce_t01", low.ce / low.n},
             {"val_soft_control_error_t01", low.ctrl / low.n},
             {"val_ce_t01_zeroed", low0.ce / low0.n},
             {"val_soft_control_error_t01_zeroed", low0.ctrl / low0.n},
             {"adapter_parameters", static_cast<double>(count_parameters(*adapter_))}};
+    out.insert(extra.begin(), extra.end());
+    return out;
   }
 
   void save_artifacts(const fs::path& outputs) override {
@@ -588,6 +633,118 @@ class AnchorAdapterTrainer : public Trainable {
   struct Losses {
     torch::Tensor ce, anc, ctrl;  // scalars; ctrl = mean anchor error of the soft decode (metres)
   };
+  struct Rollout {
+    bool on = false;
+    int64_t k = 0;               // the state after k of training.rollout.steps sampler steps
+    std::vector<int64_t> seeds;  // per row of the whole batch
+  };
+
+  // The adapter's features of each row's anchors (zero past each clip; all zero for the
+  // audit twin), without the feedback block. [B, frames, width] CPU.
+  torch::Tensor anchor_features(const std::vector<AnchorSet>& sets, int64_t frames, bool zero_features) const {
+    auto feats = torch::zeros({static_cast<int64_t>(sets.size()), frames,
+                               adapter_feature_width(cfg_.body_joints, cfg_.features)});
+    if (!zero_features)
+      for (size_t b = 0; b < sets.size(); ++b)
+        feats[b].narrow(0, 0, sets[b].frames).copy_(adapter_features(sets[b], cfg_.body_joints, cfg_.features));
+    return feats;
+  }
+
+  // feats with the feedback block filled against the frozen prior's estimate at `ids`
+  // (a copy; feats itself when feedback is off or the features are zeroed).
+  torch::Tensor with_feedback(const torch::Tensor& feats, const std::vector<AnchorSet>& sets, const torch::Tensor& ids,
+                              const torch::Tensor& t, const TextContext& caption_text, const torch::Tensor& valid,
+                              bool zero_features) const {
+    if (!cfg_.features.feedback.enabled || zero_features) return feats;
+    auto f = feats.clone();
+    fill_feedback_features(f, sets, frozen_soft_estimate(*prior_, ids, t, caption_text, valid), prior_->skeleton(),
+                           cfg_.body_joints, cfg_.features);
+    return f;
+  }
+
+  // The TMD sampler's state after k of training.rollout.steps steps from uniform tokens
+  // (final: the last step's argmax after all of them), conditioned by the adapter being
+  // trained (eval mode, no gradient) through CFG on the caption, as the generator samples
+  // (samplers/tmd_sampler.cpp; the step is tmd_sampler_step). Row b's randomness comes
+  // from its own generator seeded by seeds[b], so a row's state depends neither on the
+  // batch nor on the data-parallel shard.
+  torch::Tensor rollout_tokens(const std::vector<AnchorSet>& sets, const torch::Tensor& feats,
+                               const TextContext& caption_text, const torch::Tensor& valid, int64_t k, bool final,
+                               const std::vector<int64_t>& seeds, bool zero_features) {
+    torch::NoGradGuard ng;
+    const auto& rc = cfg_.training.rollout;
+    const auto& pc = prior_->tmd_config();
+    const auto dev = ctx_.device;
+    const int64_t B = valid.size(0), L = valid.size(1), full = tokens_.size(1), K = prior_->codebook_size();
+    constexpr double kRateEps = 1e-3;  // the sampler's default t_eps
+    std::vector<at::Generator> gens;
+    std::vector<torch::Tensor> init;
+    for (int64_t b = 0; b < B; ++b) {
+      gens.push_back(at::make_generator<at::CPUGeneratorImpl>(static_cast<uint64_t>(seeds[b])));
+      init.push_back(
+          torch::randint(0, K, {full}, gens.back(), torch::TensorOptions().dtype(torch::kInt64)).narrow(0, 0, L));
+    }
+    auto x = torch::stack(init).to(dev);
+    const bool was_training = adapter_->is_training();
+    adapter_->eval();
+    const auto null_text = prior_->null_texts(B, caption_text.memory.size(1));
+    const auto dist = prior_->distance();
+    const double h = 1.0 / rc.steps;
+    const int64_t calls = final ? rc.steps : k;
+    for (int64_t j = 0; j < calls; ++j) {
+      auto tv = torch::full({B}, j * h);
+      auto f = with_feedback(feats, sets, x, tv.to(dev), caption_text, valid, zero_features);
+      AdapterInputs in{x, tv.to(dev), caption_text, valid, f.to(dev)};
+      auto hooks = adapter_->guided_hooks(in, null_text);
+      auto logits = prior_->guided_logits(x, tv, caption_text, valid, rc.cfg_scale, &hooks);
+      if (final && j + 1 == calls) {
+        x = logits.argmax(-1);
+        break;
+      }
+      std::vector<torch::Tensor> u;
+      for (auto& g : gens) u.push_back(torch::rand({3, full}, g, torch::TensorOptions()).narrow(1, 0, L));
+      auto uu = torch::stack(u).to(dev);
+      x = tmd_sampler_step(dist, x, logits, j * h, h, kRateEps, pc.beta_c, pc.beta_a, false, 1.0, uu.select(1, 0),
+                           uu.select(1, 1), uu.select(1, 2));
+    }
+    if (was_training) adapter_->train();
+    return x;
+  }
+
+  // Generator-only anchor error of full rollouts (hard decode of the final tokens, each
+  // clip at its own length) on the first rollout.val_clips val clips, fixed draws.
+  double rollout_validation(const std::vector<int64_t>& val) {
+    const MotionSet& set = ctx_.data->set();
+    const int64_t n = std::min<int64_t>(cfg_.training.rollout.val_clips, val.size());
+    const int64_t L = tokens_.size(1), Tp = L * stride_, J = prior_->num_joints();
+    double sum = 0, count = 0;
+    for (int64_t s = 0; s < n; s += 32) {
+      std::vector<int64_t> chunk(val.begin() + s, val.begin() + std::min(n, s + 32));
+      std::vector<std::string> caps;
+      std::vector<AnchorSet> sets;
+      std::vector<int64_t> seeds;
+      for (int64_t i : chunk) {
+        caps.push_back(set.captions[i][0]);
+        sets.push_back(draw_training_set(i, static_cast<int64_t>(i) * 7919 + 17));
+        seeds.push_back(static_cast<int64_t>(i) * 104729 + 3);
+      }
+      const int64_t B = chunk.size();
+      auto n_tok = token_lengths_.index_select(0, torch::tensor(chunk, torch::kInt64));
+      auto valid = (torch::arange(L).unsqueeze(0) < n_tok.unsqueeze(1)).to(ctx_.device);
+      const bool z = cfg_.training.zero_features;
+      auto x = rollout_tokens(sets, anchor_features(sets, Tp, z), prior_->encode_texts(caps), valid, 0, true, seeds, z)
+                   .to(torch::kCPU);
+      auto world = torch::zeros({B, Tp, J, 3});
+      for (int64_t b = 0; b < B; ++b) {
+        const int64_t nt = n_tok[b].item<int64_t>(), len = set.lengths[chunk[b]];
+        world[b].narrow(0, 0, len).copy_(prior_->decode_world(x[b].narrow(0, 0, nt).clone()).narrow(0, 0, len));
+      }
+      auto anchors = make_anchor_batch(sets, torch::kCPU);
+      sum += anchor_errors(world, anchors).sum().item<double>();
+      count += anchors.valid.sum().item<double>();
+    }
+    return count > 0 ? sum / count : 0.0;
+  }
 
   AnchorSet draw_training_set(int64_t clip, int64_t seed) const {
     const MotionSet& set = ctx_.data->set();
@@ -620,7 +777,8 @@ class AnchorAdapterTrainer : public Trainable {
   // batch's counts.
   Losses controlled_loss(const std::vector<int64_t>& idx_whole, const std::vector<std::string>& caps_whole,
                          const std::vector<AnchorSet>& sets_whole, const torch::Tensor& t, const torch::Tensor& drop,
-                         at::Generator* gen, bool zero_features = false, const BatchShard& shard = {}) {
+                         at::Generator* gen, bool zero_features = false, const BatchShard& shard = {},
+                         const Rollout* rollout = nullptr) {
     const auto dev = ctx_.device;
     const auto& pc = prior_->tmd_config();
     const int64_t Bw = idx_whole.size(), L = tokens_.size(1), Tp = L * stride_, K = prior_->codebook_size();
@@ -648,15 +806,16 @@ class AnchorAdapterTrainer : public Trainable {
       torch::NoGradGuard ng;
       text = prior_->net()->drop_condition(text, shard.local(drop).to(dev));
     }
-    auto feats = torch::zeros({B, Tp, adapter_feature_width(cfg_.body_joints, cfg_.features)});
-    if (!zero_features) {
-      for (int64_t b = 0; b < B; ++b)
-        feats[b].narrow(0, 0, sets[b].frames).copy_(adapter_features(sets[b], cfg_.body_joints, cfg_.features));
-      // Feedback (ours): the anchors against the frozen prior's own estimate at the corrupted tokens.
-      if (cfg_.features.feedback.enabled)
-        fill_feedback_features(feats, sets, frozen_soft_estimate(*prior_, xin, tt, caption_text, valid),
-                               prior_->skeleton(), cfg_.body_joints, cfg_.features);
+    auto feats = anchor_features(sets, Tp, zero_features);
+    if (rollout && rollout->on) {
+      // Rollout states (ours): the sampler's own tokens at t_k replace the path's draw.
+      const auto& rc = cfg_.training.rollout;
+      xin = rollout_tokens(sets, feats, caption_text, valid, rollout->k, false, shard.local(rollout->seeds),
+                           zero_features);
+      tt = torch::full({B}, static_cast<double>(rollout->k) / rc.steps).to(dev);
     }
+    // Feedback (ours): the anchors against the frozen prior's own estimate at the input tokens.
+    feats = with_feedback(feats, sets, xin, tt, caption_text, valid, zero_features);
     AdapterInputs in{xin, tt, text, valid, feats.to(dev)};
     auto hooks = adapter_->hooks(in);
     auto logits = prior_->net()->transformer->forward(xin, tt, text, valid, &hooks).logits;  // [B, L, K]

@@ -41,13 +41,39 @@ struct AnchorKvMemoryConfig : Config {
   bool omitted_from_dump() const override { return paper() && !text_slots.enabled; }
 };
 
+// Rollout states (issue 15, ours): a fraction of training batches starts not from the
+// corruption path of eq. (19) but from the sampler's own state at t_k = k / steps, reached
+// by running the TMD sampler (eqs. (21)-(23), CFG, the adapter being trained, no gradient)
+// from uniform tokens with the clip's caption and anchors; the targets stay the clip's
+// ground-truth tokens (DAgger-style: the sampler's late states, whose heading the prior has
+// already decided, are otherwise never seen in training). Off (prob 0) by default and then
+// left out of the dump.
+// The loss of a rollout batch. Defaults (left out of the dump): eq. (16) as on path batches.
+struct AdapterRolloutLossConfig : Config {
+  double ce_weight = 1.0;       // weight of the CE toward the ground-truth tokens
+  double anchor_weight = -1.0;  // weight of the anchor loss (eq. (10)); -1 = lambda_anc
+  void visit(FieldVisitor& v) override;
+  bool omitted_from_dump() const override { return ce_weight == 1.0 && anchor_weight == -1.0; }
+};
+
+struct AdapterRolloutConfig : Config {
+  double prob = 0.0;       // fraction of training batches built from rollout states
+  int steps = 10;          // the rollout sampler's grid: k ~ U{1, ..., steps - 1}
+  double cfg_scale = 4.0;  // the rollout sampler's CFG on logits (the generator's default)
+  int val_clips = 64;      // validation: full rollouts of the first val clips (generator-only error)
+  AdapterRolloutLossConfig loss;
+  void visit(FieldVisitor& v) override;
+  bool omitted_from_dump() const override { return prob == 0.0; }
+};
+
 // Where controlled training spends its signal, and an audit switch (issue 15). Defaults:
 // eq. (19)'s uniform t and the real features, left out of the dumped config.
 struct AdapterTrainingConfig : Config {
   double t_power = 1.0;        // t = u^p, u ~ U[0, 1): p > 1 puts more draws at low (noisy) t
   bool zero_features = false;  // audit twin: the adapter sees all-zero features (no anchor information)
+  AdapterRolloutConfig rollout;
   void visit(FieldVisitor& v) override;
-  bool omitted_from_dump() const override { return t_power == 1.0 && !zero_features; }
+  bool omitted_from_dump() const override { return t_power == 1.0 && !zero_features && rollout.omitted_from_dump(); }
 };
 
 // Feedback channels (issue 15, ours; control/anchor_feedback.h): the anchors said against

@@ -570,4 +570,45 @@ torch::Tensor TokenPrior::decode_world(const torch::Tensor& ids) const {
   return tok_.model->denormalize(x.view({L * stride(), num_joints(), 3})).to(torch::kCPU);
 }
 
+// ---------------------------------------------------------------- TMD transitions
+
+torch::Tensor tmd_transition_rates(const torch::Tensor& dist, const torch::Tensor& xt, const torch::Tensor& x1_hat,
+                                   double t, double c, double a) {
+  auto tt = torch::tensor(t, torch::kFloat64);
+  double beta = tmd_beta(tt, c, a).item<double>(), dbeta = tmd_beta_prime(tt, c, a).item<double>();
+  auto rows = torch::nn::functional::embedding(x1_hat, dist);           // d(., x1_hat) [..., K]
+  auto q = torch::softmax(-beta * rows, -1);                             // q_t(. | x1_hat), eq. (18)
+  auto d_xt = rows.gather(-1, xt.unsqueeze(-1));                         // d(x_t, x1_hat) [..., 1]
+  auto u = q * dbeta * torch::relu(d_xt - rows);                         // eq. (21)
+  // d(x_t, x_t) gain is 0 already; the explicit zero also covers ties in rounding.
+  return u.scatter(-1, xt.unsqueeze(-1), 0.0);
+}
+
+torch::Tensor categorical_from_uniform(const torch::Tensor& probs, const torch::Tensor& u) {
+  auto cdf = probs.cumsum(-1);
+  auto target = u.to(cdf.dtype()).unsqueeze(-1) * cdf.narrow(-1, probs.size(-1) - 1, 1);
+  // Entries with cdf <= target are passed over, so a zero-weight entry is never picked.
+  return (cdf <= target).sum(-1).clamp_max(probs.size(-1) - 1);
+}
+
+torch::Tensor tmd_jump(const torch::Tensor& xt, const torch::Tensor& rates, double h, const torch::Tensor& u_jump,
+                       const torch::Tensor& u_pick) {
+  auto lambda = rates.sum(-1);                                   // eq. (22)
+  auto p_jump = 1 - torch::exp(-h * lambda);                     // eq. (23)
+  auto target = categorical_from_uniform(rates, u_pick.to(rates.device()));
+  auto picked_rate = rates.gather(-1, target.unsqueeze(-1)).squeeze(-1);
+  auto jump = (u_jump.to(rates.device()) < p_jump) & (lambda > 0) & (picked_rate > 0);
+  return torch::where(jump, target, xt);
+}
+
+torch::Tensor tmd_sampler_step(const torch::Tensor& dist, const torch::Tensor& x, const torch::Tensor& logits,
+                               double t, double h, double t_eps, double c, double a, bool argmax,
+                               double temperature, const torch::Tensor& u_proposal, const torch::Tensor& u_jump,
+                               const torch::Tensor& u_pick) {
+  auto x1_hat = argmax ? logits.argmax(-1) : categorical_from_uniform(torch::softmax(logits / temperature, -1), u_proposal);
+  const double tr = std::clamp(t, t_eps, 1.0 - t_eps);
+  auto rates = tmd_transition_rates(dist, x, x1_hat, tr, c, a);  // eq. (21)
+  return tmd_jump(x, rates, h, u_jump, u_pick);                 // eqs. (22)-(23)
+}
+
 }  // namespace mc

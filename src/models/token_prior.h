@@ -115,6 +115,28 @@ struct TmdPathStats {
 };
 TmdPathStats tmd_path_stats(const torch::Tensor& dist, double t, double c, double a);
 
+// TMD transitions (the sampler's step, also used by controlled training's rollouts).
+
+// eq. (21): u_t(i | x_t, x1_hat) = q_t(i | x1_hat) beta'(t) [d(x_t, x1_hat) - d(i, x1_hat)]_+,
+// with u(x_t) = 0. xt, x1_hat [...] int64; t in (0, 1). -> [..., K].
+torch::Tensor tmd_transition_rates(const torch::Tensor& dist, const torch::Tensor& xt, const torch::Tensor& x1_hat,
+                                   double t, double c, double a);
+// eqs. (22)-(23): jump with probability 1 - exp(-h sum_i u(i)), to i ~ u / sum u. The
+// randomness is given: u_jump, u_pick [...] uniforms in [0, 1).
+torch::Tensor tmd_jump(const torch::Tensor& xt, const torch::Tensor& rates, double h, const torch::Tensor& u_jump,
+                       const torch::Tensor& u_pick);
+// i ~ probs [..., K] (rows summing to 1, or any non-negative weights) by inverse CDF at u [...].
+torch::Tensor categorical_from_uniform(const torch::Tensor& probs, const torch::Tensor& u);
+
+// One non-final step of the TMD sampler from t to t + h given the step's logits [..., K]:
+// the clean proposal x1_hat (argmax, or a draw from softmax(logits / temperature) at
+// u_proposal), then eqs. (21)-(23) with rates at t clamped to [t_eps, 1 - t_eps] and the
+// given jump uniforms. The sampler and controlled training's rollouts share it.
+torch::Tensor tmd_sampler_step(const torch::Tensor& dist, const torch::Tensor& x, const torch::Tensor& logits,
+                               double t, double h, double t_eps, double c, double a, bool argmax,
+                               double temperature, const torch::Tensor& u_proposal, const torch::Tensor& u_jump,
+                               const torch::Tensor& u_pick);
+
 // ---------------------------------------------------------------- masking
 
 // MoMask's training mask count: round(n cos(pi t / 2)), at least 1 and at most n (n >= 1).

@@ -52,19 +52,6 @@ struct MaskedSamplerConfig : Config {
   }
 };
 
-// ---------------------------------------------------------------- TMD transitions
-
-// eq. (21): u_t(i | x_t, x1_hat) = q_t(i | x1_hat) beta'(t) [d(x_t, x1_hat) - d(i, x1_hat)]_+,
-// with u(x_t) = 0. xt, x1_hat [...] int64; t in (0, 1). -> [..., K].
-torch::Tensor tmd_transition_rates(const torch::Tensor& dist, const torch::Tensor& xt, const torch::Tensor& x1_hat,
-                                   double t, double c, double a);
-// eqs. (22)-(23): jump with probability 1 - exp(-h sum_i u(i)), to i ~ u / sum u. The
-// randomness is given: u_jump, u_pick [...] uniforms in [0, 1).
-torch::Tensor tmd_jump(const torch::Tensor& xt, const torch::Tensor& rates, double h, const torch::Tensor& u_jump,
-                       const torch::Tensor& u_pick);
-// i ~ probs [..., K] (rows summing to 1, or any non-negative weights) by inverse CDF at u [...].
-torch::Tensor categorical_from_uniform(const torch::Tensor& probs, const torch::Tensor& u);
-
 // ---------------------------------------------------------------- sampling
 
 struct TokenSampleResult {

@@ -171,6 +171,14 @@ TEST_CASE("adapter features in the path frame: path blocks alone or after the wo
   auto f = adapter_features(set, bj, c.features);
   CHECK(f.narrow(1, f.size(1) - 17, 17).abs().sum().item<double>() == 0.0);
   CHECK(torch::equal(f.narrow(1, 0, f.size(1) - 17), adapter_features(set, bj, path)));
+  // Rollout states (ours) and their loss weights: in the dump only when set.
+  AnchorAdapterConfig r;
+  CHECK(dump_config(r).find("training") == std::string::npos);
+  r.training.rollout.prob = 0.3;
+  CHECK(dump_config(r).find("rollout") != std::string::npos);
+  CHECK(dump_config(r).find("ce_weight") == std::string::npos);
+  r.training.rollout.loss.anchor_weight = 1.0;
+  CHECK(dump_config(r).find("ce_weight") != std::string::npos);
 }
 
 TEST_CASE("AnchorKV: one LayerKV per block, token-aligned [B, L, width], values zero at init", "[anchorkv]") {

@@ -371,3 +371,49 @@ TEST_CASE("feedback features (ours): an adapter reading them trains, logs its tw
   CHECK(torch::equal(by_hand(true), g1.world));
   CHECK_FALSE(torch::equal(by_hand(false), g1.world));
 }
+
+TEST_CASE("rollout states (ours): training on the sampler's own states logs the generator-only error, is "
+          "deterministic and trains other weights than the path alone",
+          "[anchorkv][rollout]") {
+  TinyTokenStack stack("anchorroute_rollout");
+  auto ov = [&](std::vector<std::string> more) {
+    std::vector<std::string> v = {"optim.steps=12", "optim.warmup=2", "optim.batch_size=8", "model.rank=4",
+                                  "model.anchorkv.normaliser=own", "model.anchorkv.window=1",
+                                  "model.features.feedback.enabled=true",
+                                  "model.tmd_run=" + stack.tmd.run_dir.string()};
+    v.insert(v.end(), more.begin(), more.end());
+    return stack.ov(v);
+  };
+  const std::string cfg = "configs/adapter/anchorkv_tiny.yaml";
+  const std::vector<std::string> roll = {"model.training.rollout.prob=1", "model.training.rollout.steps=3",
+                                         "model.training.rollout.val_clips=6"};
+  auto path_only = run_train(cfg, ov({}));
+  auto rolled = run_train(cfg, ov(roll));
+  auto again = run_train(cfg, ov({roll[0], roll[1], roll[2], "run.name=rollout_again"}));
+  // The switch is in the dump only when on (runs without it keep their hashes).
+  CHECK(slurp(path_only.run_dir / "config.yaml").find("rollout:") == std::string::npos);
+  CHECK(slurp(rolled.run_dir / "config.yaml").find("rollout:") != std::string::npos);
+  CHECK(path_only.summary.count("val_rollout_control_error") == 0);
+  REQUIRE(rolled.summary.count("val_rollout_control_error") == 1);
+  const double err = rolled.summary.at("val_rollout_control_error");
+  CHECK(std::isfinite(err));
+  CHECK(err > 0.0);
+  CHECK(again.summary.at("val_rollout_control_error") == err);
+  // Same config and seed: the same weights; rollouts change what is trained.
+  auto params = [](const TrainResult& r) {
+    auto a = load_anchor_adapter(r.run_dir.string());
+    std::vector<torch::Tensor> out;
+    for (auto& p : a.module->parameters()) out.push_back(p.detach().clone());
+    return out;
+  };
+  auto pp = params(path_only), pr = params(rolled), pa = params(again);
+  REQUIRE(pp.size() == pr.size());
+  REQUIRE(pa.size() == pr.size());
+  bool same_as_again = true, same_as_path = true;
+  for (size_t i = 0; i < pr.size(); ++i) {
+    same_as_again = same_as_again && torch::equal(pr[i], pa[i]);
+    same_as_path = same_as_path && torch::equal(pr[i], pp[i]);
+  }
+  CHECK(same_as_again);
+  CHECK_FALSE(same_as_path);
+}
