@@ -432,7 +432,7 @@ std::optional<PairedTest> bootstrap_difference(const RowSamples& a, const RowSam
   t.n = static_cast<int>(ma.size());
   const double va = mean_over(*pa, ma), vb = b ? mean_over(*pb, mb) : 0.0;
   if (!std::isfinite(va) || !std::isfinite(vb)) return std::nullopt;
-  t.estimate = va - vb;
+  t.estimate = va - o.factor * vb;
   t.draws = set_level_metric(metric) ? o.set_level_draws : o.draws;
   const auto sa = strata_of(a, ma);
   const auto sb = b ? strata_of(*b, mb) : std::vector<std::vector<int>>{};
@@ -448,7 +448,7 @@ std::optional<PairedTest> bootstrap_difference(const RowSamples& a, const RowSam
     // Paired: the same resampled tasks for both rows (common random numbers).
     std::vector<int> ib = b ? (t.paired ? ia : draw(sb)) : std::vector<int>{};
     const double da = mean_over(*pa, ia), db = b ? mean_over(*pb, ib) : 0.0;
-    if (std::isfinite(da) && std::isfinite(db)) diffs.push_back(da - db);
+    if (std::isfinite(da) && std::isfinite(db)) diffs.push_back(da - o.factor * db);
   }
   if (diffs.size() < 10) return std::nullopt;
   t.draws = static_cast<int>(diffs.size());
@@ -476,12 +476,12 @@ static double t975(int df) {
   return df >= 1 && df <= 30 ? q[df - 1] : 1.96;
 }
 
-PairedTest replicate_difference(const std::vector<double>& a, const std::vector<double>* b) {
+PairedTest replicate_difference(const std::vector<double>& a, const std::vector<double>* b, double factor) {
   PairedTest t;
   const size_t n = b ? std::min(a.size(), b->size()) : a.size();
   if (n == 0) fail("replicate_difference: no replicates");
   std::vector<double> d(n);
-  for (size_t i = 0; i < n; ++i) d[i] = a[i] - (b ? (*b)[i] : 0.0);
+  for (size_t i = 0; i < n; ++i) d[i] = a[i] - (b ? factor * (*b)[i] : 0.0);
   const double mean = std::accumulate(d.begin(), d.end(), 0.0) / n;
   double ss = 0;
   for (double x : d) ss += (x - mean) * (x - mean);

@@ -109,6 +109,7 @@ struct BootstrapOptions {
   int draws = 1000;
   int set_level_draws = 400;  // FID/KID/diversity recomputed per half-sample
   uint64_t seed = 20240917;
+  double factor = 1.0;  // the statistic is a - factor * b (claims "a <= factor x b"; 1 = the plain difference)
 };
 // Statistic of row a minus that of row b (b = nullptr: of a alone), averaged over the
 // replicates both have; tasks resampled within strata (task groups, coarsened until each
@@ -121,7 +122,7 @@ std::optional<PairedTest> bootstrap_difference(const RowSamples& a, const RowSam
                                                const BootstrapOptions& o);
 // Paired replicate differences with a Student-t interval: the fallback for metrics
 // kept per replicate only (time per sample, parameters, multimodality).
-PairedTest replicate_difference(const std::vector<double>& a, const std::vector<double>* b);
+PairedTest replicate_difference(const std::vector<double>& a, const std::vector<double>* b, double factor = 1.0);
 
 // holds / contradicted / undecided for "a better than b" (direction lower|higher) or,
 // with b absent, "a <= tol" (the zero claims).

@@ -848,7 +848,7 @@ static std::optional<PairedTest> test_rows(const RowResult& a, const RowResult* 
   if (auto t = bootstrap_difference(a.samples, b ? &b->samples : nullptr, metric, o.reference, p, o.bootstrap))
     return t;
   if (!has(&a, metric) || (b && !has(b, metric))) return std::nullopt;
-  return replicate_difference(a.values.at(metric), b ? &b->values.at(metric) : nullptr);
+  return replicate_difference(a.values.at(metric), b ? &b->values.at(metric) : nullptr, o.bootstrap.factor);
 }
 
 static std::string describe_test(const std::string& what, const PairedTest& t) {
@@ -871,7 +871,8 @@ static std::string fold_verdicts(const std::vector<std::string>& v) {
 }
 
 // claims.yaml: a list of {id, text, table, kind, ...}:
-//   better:   row a beats row b on metric (direction lower|higher): the paired difference a - b
+//   better:   row a beats row b on metric (direction lower|higher): the paired difference a - b;
+//             with `factor: f` (lower only), a beats f x b: the paired a - f b
 //   zero:     row's metric <= tol: its bootstrap interval against tol
 //   monotone: rows in order improve on metric (direction): every consecutive pair is a better test
 //   best:     row beats each of `others` on metric
@@ -933,6 +934,18 @@ std::vector<ClaimCheck> check_claims(const std::string& claims_file, const std::
     // Each claim draws its own deterministic bootstrap stream (seeded by its id).
     ClaimOptions o = opt;
     o.bootstrap.seed = opt.bootstrap.seed ^ std::hash<std::string>{}(cc.id);
+    if (c["factor"]) {
+      if (kind != "better" || dir != "lower")
+        fail("{}: claim '{}': factor is for better claims with direction lower (a <= factor x b)", claims_file, cc.id);
+      try {
+        o.bootstrap.factor = c["factor"].as<double>();
+      } catch (const YAML::Exception&) {
+        o.bootstrap.factor = -1;
+      }
+      if (!(o.bootstrap.factor > 0) || !std::isfinite(o.bootstrap.factor))
+        fail("{}: claim '{}': factor must be a positive number (a <= factor x b), got '{}'", claims_file, cc.id,
+             YAML::Dump(c["factor"]));
+    }
     std::vector<std::string> rows;
     if (c["rows"])
       for (auto r : c["rows"]) rows.push_back(r.as<std::string>());
@@ -969,7 +982,10 @@ std::vector<ClaimCheck> check_claims(const std::string& claims_file, const std::
           break;
         }
         verdicts.push_back(better_verdict(*test, dir));
-        evidence.push_back(describe_test(fmt::format("{} {} − {}", m, a, b), *test));
+        evidence.push_back(describe_test(
+            o.bootstrap.factor == 1.0 ? fmt::format("{} {} − {}", m, a, b)
+                                      : fmt::format("{} {} − {:g} × {}", m, a, o.bootstrap.factor, b),
+            *test));
         if (verdicts.back() == "undecided")
           power.push_back(a + " vs " + b + (metrics.size() > 1 ? " (" + m + ")" : "") + ": " +
                           power_note(*test, 0.0, !ra->samples.empty() && !rb->samples.empty()));

@@ -422,3 +422,53 @@ TEST_CASE("claims: a metrics list tests every per-group key, and all must hold",
   write_file_atomic(file, "claims:\n  - {id: z, table: synthetic/table, kind: zero, row: a, metrics: [avg_err], text: x}\n");
   CHECK_THROWS_WITH(check_claims(file, {t}), Catch::Contains("'z'"));
 }
+
+TEST_CASE("claims: factor tests a <= f x b on the paired a - f b", "[experiments]") {
+  // 40 tasks with a shared per-task spread; a = 0.6 b on every task, plus small noise.
+  std::mt19937_64 rng(9);
+  std::normal_distribution<double> task_sd(0.0, 0.3), noise(0.0, 0.01);
+  std::vector<std::string> groups;
+  std::vector<double> va, vb;
+  for (int i = 0; i < 40; ++i) {
+    groups.push_back(std::string("family=root_3d/K=") + (i % 2 ? "2" : "4"));
+    const double base = 1.3 + task_sd(rng);
+    vb.push_back(base);
+    va.push_back(0.6 * base + noise(rng));
+  }
+  TableResult t;
+  t.spec.table.id = "synthetic/table";
+  RowResult a, b;
+  a.row_id = "a";
+  b.row_id = "b";
+  a.samples = synthetic_row(groups, va, "control_error");
+  b.samples = synthetic_row(groups, vb, "control_error");
+  t.rows = {a, b};
+  TempDir dir{"claims_factor"};
+  const std::string file = (dir.path / "claims.yaml").string();
+  write_file_atomic(file,
+                    "claims:\n"
+                    "  - {id: two_thirds, table: synthetic/table, kind: better, row: a, than: b, metric: control_error,"
+                    " factor: 0.67, direction: lower, text: x}\n"
+                    "  - {id: half, table: synthetic/table, kind: better, row: a, than: b, metric: control_error,"
+                    " factor: 0.5, direction: lower, text: x}\n"
+                    "  - {id: plain, table: synthetic/table, kind: better, row: a, than: b, metric: control_error,"
+                    " direction: lower, text: x}\n");
+  auto c = check_claims(file, {t});
+  REQUIRE(c.size() == 3);
+  CHECK(c[0].verdict == "holds");         // 0.6 b <= 0.67 b
+  CHECK(c[1].verdict == "contradicted");  // 0.6 b > 0.5 b
+  CHECK(c[1].evidence.find("control_error a − 0.5 × b") != std::string::npos);
+  CHECK(c[2].verdict == "holds");
+  CHECK(c[2].evidence.find("a − b") != std::string::npos);
+  // The estimate is the mean of a - f b.
+  double ma = 0, mb = 0;
+  for (int i = 0; i < 40; ++i) ma += va[i] / 40, mb += vb[i] / 40;
+  CHECK(c[1].evidence.find(fmt::format("{:.4g}", ma - 0.5 * mb)) != std::string::npos);
+  // A factor on a higher-is-better claim, or a non-positive one, is refused naming the claim.
+  write_file_atomic(file, "claims:\n  - {id: up, table: synthetic/table, kind: better, row: a, than: b,"
+                          " metric: control_error, factor: 0.5, direction: higher, text: x}\n");
+  CHECK_THROWS_WITH(check_claims(file, {t}), Catch::Contains("'up'") && Catch::Contains("factor"));
+  write_file_atomic(file, "claims:\n  - {id: neg, table: synthetic/table, kind: better, row: a, than: b,"
+                          " metric: control_error, factor: x, text: x}\n");
+  CHECK_THROWS_WITH(check_claims(file, {t}), Catch::Contains("'neg'") && Catch::Contains("positive"));
+}
