@@ -64,6 +64,16 @@ std::optional<ControlUptake> control_uptake(const std::string& run_dir, const st
         if (m["lambda_anc"]) what += fmt::format(", lambda_anc {:g}", m["lambda_anc"].as<double>());
         if (m["training"] && m["training"]["zero_features"] && m["training"]["zero_features"].as<bool>())
           what += ", trained on zeroed features (audit twin)";
+        if (m["features"] && m["features"]["feedback"] && m["features"]["feedback"]["enabled"] &&
+            m["features"]["feedback"]["enabled"].as<bool>())
+          what += ", feedback channels";
+        if (m["training"] && m["training"]["rollout"] && m["training"]["rollout"]["prob"]) {
+          const YAML::Node r = m["training"]["rollout"];
+          what += fmt::format(", rollout states in {:g} of batches", r["prob"].as<double>());
+          if (r["loss"] && r["loss"]["ce_weight"] && r["loss"]["anchor_weight"])
+            what += fmt::format(" (CE {:g}, anchor loss {:g})", r["loss"]["ce_weight"].as<double>(),
+                                r["loss"]["anchor_weight"].as<double>());
+        }
         u.model_type += " (" + what + ")";
       }
     } catch (const YAML::Exception&) {  // the figures still say what they can

@@ -106,6 +106,18 @@ TEST_CASE("reproduce's prior health: table tops name the verdict, health.md/json
   CHECK(hmd.find("not logged: the run has no val_ctrl_off_t0.10") != std::string::npos);
   CHECK(hmd.find("anchorkv_adapter") == std::string::npos);  // unknown types are left out
   CHECK_FALSE(control_uptake(prior.string(), "flow_prior"));
+  // Feedback channels and rollout states are named (the run names are hashes).
+  const fs::path ro = dir.path / "ro";
+  fs::create_directories(ro);
+  std::ofstream(ro / "config.yaml")
+      << "model:\n  type: anchor_adapter\n  adapter: anchorkv\n  dual_context: false\n  features:\n    feedback:\n"
+         "      enabled: true\n  training:\n    rollout:\n      prob: 0.3\n      loss:\n        ce_weight: 0.2\n"
+         "        anchor_weight: 1\n";
+  auto u = control_uptake(ro.string(), "anchor_adapter");
+  REQUIRE(u);
+  CHECK(u->model_type ==
+        "anchor_adapter (anchorkv, no dual context, feedback channels, rollout states in 0.3 of batches (CE 0.2, "
+        "anchor loss 1))");
   CHECK(std::system(fmt::format("'{}' -c 'import json, sys; d = json.load(open(sys.argv[1])); "
                                 "assert d[\"healthy\"] is False and len(d[\"components\"]) == 1; "
                                 "c = d[\"control_components\"]; assert len(c) == 2 and c[0][\"with_signal\"] == 0.4 "
