@@ -41,13 +41,6 @@ struct AnchorKvMemoryConfig : Config {
   bool omitted_from_dump() const override { return paper() && !text_slots.enabled; }
 };
 
-// Rollout states (issue 15, ours): a fraction of training batches starts not from the
-// corruption path of eq. (19) but from the sampler's own state at t_k = k / steps, reached
-// by running the TMD sampler (eqs. (21)-(23), CFG, the adapter being trained, no gradient)
-// from uniform tokens with the clip's caption and anchors; the targets stay the clip's
-// ground-truth tokens (DAgger-style: the sampler's late states, whose heading the prior has
-// already decided, are otherwise never seen in training). Off (prob 0) by default and then
-// left out of the dump.
 // The loss of a rollout batch. Defaults (left out of the dump): eq. (16) as on path batches.
 struct AdapterRolloutLossConfig : Config {
   double ce_weight = 1.0;       // weight of the CE toward the ground-truth tokens
@@ -56,6 +49,13 @@ struct AdapterRolloutLossConfig : Config {
   bool omitted_from_dump() const override { return ce_weight == 1.0 && anchor_weight == -1.0; }
 };
 
+// Rollout states (issue 15, ours): a fraction of training batches starts not from the
+// corruption path of eq. (19) but from the sampler's own state at t_k = k / steps, reached
+// by running the TMD sampler (eqs. (21)-(23), CFG, the adapter being trained, no gradient)
+// from uniform tokens with the clip's caption and anchors; the targets stay the clip's
+// ground-truth tokens (DAgger-style: the sampler's late states, whose heading the prior has
+// already decided, are otherwise never seen in training). Off (prob 0) by default and then
+// left out of the dump.
 struct AdapterRolloutConfig : Config {
   double prob = 0.0;       // fraction of training batches built from rollout states
   int steps = 10;          // the rollout sampler's grid: k ~ U{1, ..., steps - 1}

@@ -6,6 +6,8 @@
 
 #include <chrono>
 #include <cmath>
+#include <map>
+#include <sstream>
 
 #include "control/anchor_feedback.h"
 #include "control/anchors.h"
@@ -416,4 +418,30 @@ TEST_CASE("rollout states (ours): training on the sampler's own states logs the 
   }
   CHECK(same_as_again);
   CHECK_FALSE(same_as_path);
+  // rollout.loss weighs a rollout batch's terms: with both weights 0 every batch (prob 1)
+  // logs a zero loss while its CE is not.
+  auto zero = run_train(cfg, ov({"model.training.rollout.prob=1", "model.training.rollout.steps=3",
+                                 "model.training.rollout.val_clips=6", "model.training.rollout.loss.ce_weight=0",
+                                 "model.training.rollout.loss.anchor_weight=0", "run.log_every=4"}));
+  std::stringstream rows(slurp(zero.run_dir / "metrics.csv"));
+  std::string line, header;
+  std::getline(rows, header);
+  std::vector<std::string> names;
+  {
+    std::stringstream hs(header);
+    for (std::string cell; std::getline(hs, cell, ',');) names.push_back(cell);
+  }
+  int logged = 0;
+  while (std::getline(rows, line)) {
+    std::stringstream ls(line);
+    std::map<std::string, double> v;
+    size_t col = 0;
+    for (std::string cell; std::getline(ls, cell, ',') && col < names.size(); ++col) v[names[col]] = std::stod(cell);
+    REQUIRE(v.count("loss") == 1);
+    REQUIRE(v.count("ce") == 1);
+    CHECK(v.at("loss") == 0.0);
+    CHECK(v.at("ce") > 0.0);
+    ++logged;
+  }
+  CHECK(logged >= 2);
 }
