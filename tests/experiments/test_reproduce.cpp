@@ -254,7 +254,8 @@ TEST_CASE("motionctl reproduce: reduced smoke replay of the AnchorRoute and cros
   const fs::path out = dir.path / "results" / "ci_ar";
   std::map<std::string, std::map<std::string, double>> means;  // table:row -> metric -> mean
   std::vector<std::string> tables = {"anchorroute/table1", "anchorroute/table2", "anchorroute/table3",
-                                     "anchorroute/table4", "anchorroute/table5", "anchorroute/table6",
+                                     "anchorroute/table4", "anchorroute/table4_recipe", "anchorroute/table5",
+                                     "anchorroute/table6",
                                      "anchorroute/table7", "cross/benchmark"};
   for (const auto& t : tables) {
     for (std::string ext : {".md", ".csv", ".tex"}) {
@@ -286,6 +287,16 @@ TEST_CASE("motionctl reproduce: reduced smoke replay of the AnchorRoute and cros
   CHECK(kv > 0);
   CHECK(means["anchorroute/table4:controlnet_adapter"]["params"] > kv);
   CHECK(means["anchorroute/table4:anchorkv/no_dual_context_no_anchor_loss"]["params"] < kv);
+  // Table IV under one recipe: every path trained (feedback channels and rollout states),
+  // the ControlNet adapter still the largest, every row's control error measured.
+  const double kv_recipe = means["anchorroute/table4_recipe:anchorkv"]["params"];
+  CHECK(kv_recipe > 0);
+  CHECK(means["anchorroute/table4_recipe:controlnet_adapter"]["params"] > kv_recipe);
+  for (std::string row : {"tmd/no_adapter", "cross_attn_adapter", "controlnet_adapter", "anchorkv",
+                          "anchorkv/zeroed_features"}) {
+    INFO(row);
+    CHECK(means["anchorroute/table4_recipe:" + row].count("control_error"));
+  }
   // Table VII: refinement steps as configured, cost relative to the generator alone.
   CHECK(means["anchorroute/table7:rs0"]["relative_cost"] == Approx(1.0));
   CHECK(means["anchorroute/table7:rs500"]["steps"] == Approx(500));
