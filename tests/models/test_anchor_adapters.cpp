@@ -360,7 +360,10 @@ TEST_CASE("identity at initialisation: untrained adapters leave the frozen prior
     auto h = a->hooks(x.in);
     auto with = bb->forward(x.in.ids, x.in.t, x.in.text, x.in.valid, &h).logits;
     auto valid = x.in.valid.unsqueeze(-1).expand_as(base);
-    CHECK(max_abs_diff(base.masked_select(valid), with.masked_select(valid)) < 1e-6);
+    // Equal up to float32 rounding: the hooked forward takes another computation path (its
+    // matmuls have other shapes, so BLAS may sum in another order: 1.4e-6 measured on an
+    // AMD EPYC), three orders below what random weights move (> 1e-3, below).
+    CHECK(max_abs_diff(base.masked_select(valid), with.masked_select(valid)) < 1e-5);
     // Zero-init is not zero effect forever: the same adapter with random weights moves them.
     randomise(*a, 8);
     auto h2 = a->hooks(x.in);
