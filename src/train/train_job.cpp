@@ -46,6 +46,26 @@ void set_config_redirects(const std::vector<std::string>& from_to, const std::st
   config_redirects() = std::move(out);
 }
 
+static int& train_steps_cap() {
+  static int cap = 0;  // 0: no cap
+  return cap;
+}
+
+void set_train_steps_cap(int cap) { train_steps_cap() = cap > 0 ? cap : 0; }
+
+// `overrides` plus optim.steps=<cap> (and a warm-up shorter than it) when the job asks
+// for more steps than the process-wide cap, so the run's overrides.txt, its name and
+// its hash say what it trained.
+static std::vector<std::string> with_steps_cap(const std::string& file, std::vector<std::string> overrides) {
+  const int cap = train_steps_cap();
+  if (cap == 0) return overrides;
+  const auto job = load_job<TrainJobConfig>(file, overrides);
+  if (job.optim.steps <= cap) return overrides;
+  overrides.push_back(fmt::format("optim.steps={}", cap));
+  if (job.optim.warmup >= cap) overrides.push_back(fmt::format("optim.warmup={}", cap / 10));
+  return overrides;
+}
+
 static std::string& runs_root_slot() {
   static std::string root;
   return root;
@@ -80,7 +100,7 @@ static std::string default_run_name(const std::string& file, const TrainJobConfi
 
 std::string run_config_hash(const std::string& requested, const std::vector<std::string>& overrides) {
   const std::string file = redirected_config(requested);
-  return identity_hash(load_job<TrainJobConfig>(file, overrides));
+  return identity_hash(load_job<TrainJobConfig>(file, with_steps_cap(file, overrides)));
 }
 
 // Builds the training data from its fixture config when the file is missing.
@@ -102,7 +122,7 @@ std::string redirected_config(const std::string& file) {
 TrainResult run_train(const std::string& requested, const std::vector<std::string>& given,
                       const TrainLoopOptions& loop) {
   const std::string file = redirected_config(requested);
-  const std::vector<std::string> overrides = with_runs_root(given);
+  const std::vector<std::string> overrides = with_steps_cap(file, with_runs_root(given));
   auto job = load_job<TrainJobConfig>(file, overrides);
   RunsRootScope components_root(job.run.root);  // the runs its model trains go beside it
   if (DataParallel* dp = loop.data_parallel) {
@@ -138,7 +158,7 @@ TrainResult run_train(const std::string& requested, const std::vector<std::strin
 
 fs::path run_dir_of(const std::string& requested, const std::vector<std::string>& overrides) {
   const std::string file = redirected_config(requested);
-  auto job = load_job<TrainJobConfig>(file, with_runs_root(overrides));
+  auto job = load_job<TrainJobConfig>(file, with_steps_cap(file, with_runs_root(overrides)));
   std::string name = job.run.name.empty() ? default_run_name(file, job) : job.run.name;
   return fs::path(job.run.root) / job.run.experiment / name;
 }

@@ -16,6 +16,7 @@
 #include "samplers/motion_generator.h"
 #include "test_util.h"
 #include "train/dependencies.h"
+#include "train/train_job.h"
 #include "train/trainer.h"
 
 using namespace mc;
@@ -120,4 +121,31 @@ TEST_CASE("dependencies: a generator never trains its prior, the job's resolutio
   auto out = gen->generate(tasks, 3);
   CHECK(out.world.size(0) == 1);
   CHECK(torch::isfinite(out.world).all().item<bool>());
+}
+
+TEST_CASE("train steps cap: a longer job is named, hashed and trained as the capped one, shorter ones untouched",
+          "[train]") {
+  const std::string cfg = "configs/adapter/anchorkv_tiny.yaml";  // 75 steps, warm-up below 40
+  const std::vector<std::string> longer = {"optim.steps=4500"};
+  const std::string plain_hash = run_config_hash(cfg, {}), longer_hash = run_config_hash(cfg, longer);
+  const fs::path longer_dir = run_dir_of(cfg, longer);
+  REQUIRE(plain_hash != longer_hash);
+  struct Reset {
+    ~Reset() { set_train_steps_cap(0); }
+  } reset;
+  set_train_steps_cap(40);
+  // 4,500 and 75 steps both become the 40-step run: same hash and directory as asking for 40.
+  CHECK(run_config_hash(cfg, longer) == run_config_hash(cfg, {"optim.steps=40"}));
+  CHECK(run_config_hash(cfg, {}) == run_config_hash(cfg, {"optim.steps=40"}));
+  CHECK(run_dir_of(cfg, longer) == run_dir_of(cfg, {"optim.steps=40"}));
+  CHECK(run_dir_of(cfg, longer) != longer_dir);
+  // A job within the cap is the same run as without one.
+  CHECK(run_config_hash(cfg, {"optim.steps=30"}) != run_config_hash(cfg, {"optim.steps=40"}));
+  set_train_steps_cap(200);
+  CHECK(run_config_hash(cfg, {}) == plain_hash);
+  // A warm-up at least as long as the cap is shortened with it (cap / 10).
+  set_train_steps_cap(8);
+  CHECK(run_config_hash(cfg, {"optim.warmup=50"}) == run_config_hash(cfg, {"optim.steps=8", "optim.warmup=0"}));
+  set_train_steps_cap(0);
+  CHECK(run_config_hash(cfg, longer) == longer_hash);
 }
