@@ -31,7 +31,7 @@ struct ProfileConfig : Config {
   // table_id=N: tasks per row of one table in this profile (cheap tables with small
   // effects get more tasks; the smoke and CI profiles keep theirs).
   std::vector<std::string> table_num_samples;
-  int max_train_steps = 0;  // cap on optim.steps of every component trained for the profile (0 = none)
+  bool lengthen_training = true;  // rows may train a component longer than its training config
   std::string runs_root = "runs/experiments";
   std::string results_root = "results";
   bool health = true;  // prior health of every trained prior the rows use
@@ -55,10 +55,10 @@ struct ProfileConfig : Config {
     v("table_num_samples", table_num_samples,
       "table_id=N entries: tasks per row for that table in this profile (over the table's own num_samples and "
       "profile.num_samples), e.g. anchorroute/table4=256");
-    v("max_train_steps", max_train_steps,
-      "cap on optim.steps of every component this profile trains (0 = none): rows that ask for longer training "
-      "(Table IV's 4,500-step adapter) stay at a smoke or CI profile's scale; capped runs carry optim.steps=N",
-      at_least(0));
+    v("lengthen_training", lengthen_training,
+      "whether rows may train a component longer than its training config says (optim.steps overrides such as "
+      "Table IV's 4,500-step adapter); false caps them at the config's own steps (smoke and CI profiles), and "
+      "the capped run carries optim.steps=N");
     v("runs_root", runs_root, "where row runs and trained components live");
     v("results_root", results_root, "results/<profile>/ goes here");
     v("health", health,

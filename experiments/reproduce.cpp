@@ -223,7 +223,7 @@ ReproduceResult reproduce(const ReproduceOptions& opt) {
          profile_file);
   ProfileFile pf = load_job<ProfileFile>(profile_file, opt.profile_overrides);
   set_config_redirects(pf.profile.trained_configs, profile_file + ": profile.trained_configs");
-  set_train_steps_cap(pf.profile.max_train_steps);
+  set_lengthened_training(pf.profile.lengthen_training);
 
   // Load and check every selected spec before anything runs: a typo fails in seconds.
   std::vector<TableSpec> specs;

@@ -46,23 +46,23 @@ void set_config_redirects(const std::vector<std::string>& from_to, const std::st
   config_redirects() = std::move(out);
 }
 
-static int& train_steps_cap() {
-  static int cap = 0;  // 0: no cap
-  return cap;
+static bool& lengthening_allowed() {
+  static bool allowed = true;
+  return allowed;
 }
 
-void set_train_steps_cap(int cap) { train_steps_cap() = cap > 0 ? cap : 0; }
+void set_lengthened_training(bool allowed) { lengthening_allowed() = allowed; }
 
-// `overrides` plus optim.steps=<cap> (and a warm-up shorter than it) when the job asks
-// for more steps than the process-wide cap, so the run's overrides.txt, its name and
-// its hash say what it trained.
+// `overrides` plus optim.steps=<the config's own> (and a warm-up shorter than it) when
+// lengthening is off and they ask for more steps than the config itself trains, so
+// the run's overrides.txt, its name and its hash say what it trained.
 static std::vector<std::string> with_steps_cap(const std::string& file, std::vector<std::string> overrides) {
-  const int cap = train_steps_cap();
-  if (cap == 0) return overrides;
+  if (lengthening_allowed()) return overrides;
+  const int own = load_job<TrainJobConfig>(file, {}).optim.steps;
   const auto job = load_job<TrainJobConfig>(file, overrides);
-  if (job.optim.steps <= cap) return overrides;
-  overrides.push_back(fmt::format("optim.steps={}", cap));
-  if (job.optim.warmup >= cap) overrides.push_back(fmt::format("optim.warmup={}", cap / 10));
+  if (job.optim.steps <= own) return overrides;
+  overrides.push_back(fmt::format("optim.steps={}", own));
+  if (job.optim.warmup >= own) overrides.push_back(fmt::format("optim.warmup={}", own / 10));
   return overrides;
 }
 

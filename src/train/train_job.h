@@ -54,12 +54,13 @@ std::vector<std::string> take_trained_runs();
 // entry is malformed or a file is missing. An empty list clears the redirects.
 void set_config_redirects(const std::vector<std::string>& from_to, const std::string& what);
 
-// A process-wide cap on optim.steps for every component run_train trains (0 = none):
-// a job asking for more trains `cap` steps, with the cap as an override (and a
-// warm-up of cap / 10 when its own is not shorter). Smoke and CI profiles set it so
-// that rows asking for longer training (Table IV's 4,500-step adapter) stay at their
-// scale.
-void set_train_steps_cap(int cap);
+// Whether run_train may train a component longer than its training config says
+// (process-wide; default true). When false, overrides that raise optim.steps above the
+// config's own (after the redirects) are capped there, with the cap as an override
+// (and a warm-up of steps / 10 when its own is not shorter). Smoke and CI profiles
+// turn it off so that rows asking for longer training (Table IV's 4,500-step adapter)
+// stay at their scale.
+void set_lengthened_training(bool allowed);
 
 // The training config run_train(file) trains under the current redirects: `file`
 // itself, or the resolved path of its redirect target.

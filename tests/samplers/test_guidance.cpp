@@ -77,9 +77,9 @@ TEST_CASE("guidance beats the unconstrained prior's control error at every OmniC
   const std::vector<size_t> test = data.indices_of_split("test");
   REQUIRE(test.size() >= 30);
 
-  // The tables' guidance settings (the tuned step), on the smoke prior at the smoke profile's 20 steps.
+  // The tables' guidance settings (the tuned step), on the smoke prior at the smoke profile's 10 steps.
   const std::vector<std::string> on_smoke = {"generator.prior.run_dir=" + prior_dir,
-                                             "generator.sampler.steps=20"};
+                                             "generator.sampler.steps=10"};
   auto guided = generator_of(compose_config(src + "/experiments/generators/guidance.yaml", on_smoke));
   auto free = generator_of(compose_config(src + "/experiments/generators/flow.yaml", on_smoke));
 

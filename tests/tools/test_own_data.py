@@ -117,7 +117,7 @@ class OwnDataEndToEnd(unittest.TestCase):
                                      capture_output=True, text=True, timeout=300)
         assert cls.convert.returncode == 0, cls.convert.stdout + cls.convert.stderr
         cls.prior = run("train", "configs/prior/flow_tiny.yaml", f"data.path={cls.data}", "data.fixture=''",
-                        f"run.root={cls.runs}", "run.name=mine", f"optim.steps={STEPS}", "optim.warmup=5",
+                        f"run.root={cls.runs}", "run.name=mine", f"optim.steps={STEPS}", "optim.warmup=5", "optim.batch_size=8",
                         "run.log_every=10", "run.checkpoint_every=10", "run.threads=1")
         cls.prior_dir = os.path.join(cls.runs, "prior", "mine")
         cls.samples = os.path.join(cls.tmp, "samples.h5")
@@ -131,7 +131,7 @@ class OwnDataEndToEnd(unittest.TestCase):
                            f"run.root={cls.runs}", f"output={cls.generated}")
         cls.eval = run("eval", "configs/eval/t2m_smoke.yaml", f"eval.reference={cls.data}",
                        f"eval.motions={cls.samples}", f"run.root={cls.runs}",
-                       f"eval.evaluator_overrides=[data.path={cls.data}, run.name=mine, optim.steps={STEPS}, "
+                       f"eval.evaluator_overrides=[data.path={cls.data}, run.name=mine, optim.steps={STEPS}, optim.batch_size=8, "
                        "optim.warmup=5, run.log_every=10, run.checkpoint_every=10]",
                        "protocol.repeats=2", "protocol.r_precision_pool=4", "protocol.diversity_pairs=4",
                        "run.threads=1")

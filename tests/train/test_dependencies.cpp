@@ -123,29 +123,32 @@ TEST_CASE("dependencies: a generator never trains its prior, the job's resolutio
   CHECK(torch::isfinite(out.world).all().item<bool>());
 }
 
-TEST_CASE("train steps cap: a longer job is named, hashed and trained as the capped one, shorter ones untouched",
+TEST_CASE("lengthened training off: a longer job is named, hashed and trained as the config's own, shorter ones untouched",
           "[train]") {
-  const std::string cfg = "configs/adapter/anchorkv_tiny.yaml";  // 75 steps, warm-up below 40
+  const std::string cfg = "configs/adapter/anchorkv_tiny.yaml";  // 75 steps, warm-up 30
   const std::vector<std::string> longer = {"optim.steps=4500"};
   const std::string plain_hash = run_config_hash(cfg, {}), longer_hash = run_config_hash(cfg, longer);
-  const fs::path longer_dir = run_dir_of(cfg, longer);
+  const fs::path plain_dir = run_dir_of(cfg, {}), longer_dir = run_dir_of(cfg, longer);
   REQUIRE(plain_hash != longer_hash);
   struct Reset {
-    ~Reset() { set_train_steps_cap(0); }
+    ~Reset() { set_lengthened_training(true); }
   } reset;
-  set_train_steps_cap(40);
-  // 4,500 and 75 steps both become the 40-step run: same hash and directory as asking for 40.
-  CHECK(run_config_hash(cfg, longer) == run_config_hash(cfg, {"optim.steps=40"}));
-  CHECK(run_config_hash(cfg, {}) == run_config_hash(cfg, {"optim.steps=40"}));
-  CHECK(run_dir_of(cfg, longer) == run_dir_of(cfg, {"optim.steps=40"}));
+  set_lengthened_training(false);
+  // Asking for 4,500 steps is the config's own 75-step run: same hash and directory.
+  CHECK(run_config_hash(cfg, longer) == plain_hash);
+  CHECK(run_dir_of(cfg, longer) == plain_dir);
   CHECK(run_dir_of(cfg, longer) != longer_dir);
-  // A job within the cap is the same run as without one.
-  CHECK(run_config_hash(cfg, {"optim.steps=30"}) != run_config_hash(cfg, {"optim.steps=40"}));
-  set_train_steps_cap(200);
-  CHECK(run_config_hash(cfg, {}) == plain_hash);
-  // A warm-up at least as long as the cap is shortened with it (cap / 10).
-  set_train_steps_cap(8);
-  CHECK(run_config_hash(cfg, {"optim.warmup=50"}) == run_config_hash(cfg, {"optim.steps=8", "optim.warmup=0"}));
-  set_train_steps_cap(0);
+  // Shorter runs and other overrides are untouched.
+  CHECK(run_config_hash(cfg, {"optim.steps=30"}) != plain_hash);
+  CHECK(run_config_hash(cfg, {"optim.steps=30"}) == [&] {
+    set_lengthened_training(true);
+    auto h = run_config_hash(cfg, {"optim.steps=30"});
+    set_lengthened_training(false);
+    return h;
+  }());
+  CHECK(run_config_hash(cfg, {"optim.lr=1e-4", "optim.steps=900"}) == run_config_hash(cfg, {"optim.lr=1e-4"}));
+  // A warm-up at least as long as the config's steps is shortened with the cap (steps / 10).
+  CHECK(run_config_hash(cfg, {"optim.steps=900", "optim.warmup=80"}) == run_config_hash(cfg, {"optim.warmup=7"}));
+  set_lengthened_training(true);
   CHECK(run_config_hash(cfg, longer) == longer_hash);
 }
