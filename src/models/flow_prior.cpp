@@ -34,6 +34,13 @@ std::string FlowPriorConfig::validate() const {
     return "kinematic_head.skip.enabled assumes the papers' N(0, I) source noise: turn kinematic_head.noise off";
   if (kinematic_head.noise.enabled && !kinematic_head.enabled)
     return "kinematic_head.noise.enabled needs kinematic_head.enabled (its channel statistics shape the noise)";
+  if (kinematic_head.bones.enabled && !kinematic_head.enabled)
+    return "kinematic_head.bones.enabled needs kinematic_head.enabled (bones are the head's pose channels)";
+  if (kinematic_head.bones.rigid && !kinematic_head.bones.enabled)
+    return "kinematic_head.bones.rigid needs kinematic_head.bones.enabled (it fixes the bone vectors' lengths)";
+  if (kinematic_head.bones.enabled && (kinematic_head.noise.enabled || kinematic_head.skip.enabled))
+    return "kinematic_head.bones.enabled is not combined with kinematic_head.noise or kinematic_head.skip (both "
+           "read the pose channels as root-relative joints): turn those off";
   if (kinematic_head.enabled && prediction != "clean")
     return "kinematic_head.enabled needs prediction: clean (the head states the clean endpoint x1_hat)";
   if (prediction == "velocity" && loss == "clean")
@@ -81,7 +88,20 @@ FlowPriorNetImpl::FlowPriorNetImpl(int vocab_size, int num_joints, const FlowPri
     kin_std = register_buffer("kin_std", torch::ones({C}));
     kinematic_noise = c.kinematic_head.noise.enabled;
     kinematic_skip = c.kinematic_head.skip.enabled;
+    if (c.kinematic_head.bones.enabled) {
+      kinematic_bones = true;
+      kinematic_rigid = c.kinematic_head.bones.rigid;
+      const int64_t n = num_joints - 1;
+      kin_from_bones = register_buffer("kin_from_bones", torch::eye(n));
+      kin_to_bones = register_buffer("kin_to_bones", torch::eye(n));
+      kin_bone_length = register_buffer("kin_bone_length", torch::ones({n}));
+    }
   }
+}
+
+torch::Tensor FlowPriorNetImpl::head_target_channels(const torch::Tensor& world, const torch::Tensor& mask) const {
+  auto ch = kinematic_channels(world, mask);
+  return kinematic_bones ? map_pose_block(ch, kin_to_bones) : ch;
 }
 
 torch::Tensor FlowPriorNetImpl::head_channels(const torch::Tensor& out, const torch::Tensor& x, const torch::Tensor& t,
@@ -114,6 +134,10 @@ torch::Tensor FlowPriorNetImpl::head_channels(const torch::Tensor& out, const to
 
 torch::Tensor FlowPriorNetImpl::decode_head(const torch::Tensor& out, const torch::Tensor& mask) const {
   auto ch = out * kin_std.to(out.device(), out.scalar_type()) + kin_mean.to(out.device(), out.scalar_type());
+  if (kinematic_bones) {
+    if (kinematic_rigid) ch = rigid_pose_block(ch, kin_bone_length);
+    ch = map_pose_block(ch, kin_from_bones);
+  }
   auto world = joints_from_kinematic(ch, mask.to(out.device()));
   return (world - joint_mean.to(out.device(), out.scalar_type())) / joint_std.to(out.device(), out.scalar_type());
 }
@@ -211,14 +235,22 @@ class FlowPriorTrainer : public Trainable {
     net_->joint_std.copy_(ctx.data->joint_std());
     if (net_->kinematic_head) {
       // The head's channel statistics over the training split's valid frames.
+      torch::Tensor to_bones;
+      if (net_->kinematic_bones) {
+        const auto& parents = set.skeleton.parents;
+        to_bones = relative_to_bones_matrix(parents);
+        net_->kin_to_bones.copy_(to_bones);
+        net_->kin_from_bones.copy_(bones_to_relative_matrix(parents));
+      }
       KinematicStats stats;
       for (const auto& chunk : chunked(ctx.data->split("train"), 256)) {
         MotionBatch b = ctx.data->batch(chunk, 0, 1, torch::kCPU);
-        stats.add(ctx.data->denormalize(b.joints), b.mask);
+        stats.add(ctx.data->denormalize(b.joints), b.mask, to_bones);
       }
       auto [mean, std] = stats.mean_std();
       net_->kin_mean.copy_(mean);
       net_->kin_std.copy_(std);
+      if (net_->kinematic_bones) net_->kin_bone_length.copy_(stats.mean_bone_lengths());
     }
   }
   nn::Module& module() override { return *net_; }
@@ -349,7 +381,7 @@ class FlowPriorTrainer : public Trainable {
       // statistics (the root's step and the root-relative joints get their own unit),
       // with the time weight of the chosen loss.
       auto dev = out.device();
-      auto target = (kinematic_channels(ctx_.data->denormalize(x1), b.mask) - net_->kin_mean.to(dev)) /
+      auto target = (net_->head_target_channels(ctx_.data->denormalize(x1), b.mask) - net_->kin_mean.to(dev)) /
                     net_->kin_std.to(dev);
       auto kerr = net_->head_channels(out, xt, t, b.mask) - target;
       if (space != "clean") kerr = kerr * inv_gap().view({-1, 1, 1});
@@ -435,6 +467,12 @@ FlowPrior FlowPrior::untrained(const FlowPriorConfig& cfg, const Skeleton& skele
     for (auto& w : (*p.net_)->parameters()) w.normal_(0.0, 0.02);
     (*p.net_)->joint_mean.copy_(torch::tensor({0.0f, 0.9f, 0.0f}));
     (*p.net_)->joint_std.copy_(torch::tensor({0.5f, 0.6f, 0.8f}));
+    if ((*p.net_)->kinematic_bones) {
+      (*p.net_)->kin_to_bones.copy_(relative_to_bones_matrix(skeleton.parents));
+      (*p.net_)->kin_from_bones.copy_(bones_to_relative_matrix(skeleton.parents));
+      std::vector<float> lengths(skeleton.bone_lengths.begin() + 1, skeleton.bone_lengths.end());
+      (*p.net_)->kin_bone_length.copy_(torch::tensor(lengths));
+    }
   }
   (*p.net_)->to(device);
   (*p.net_)->eval();

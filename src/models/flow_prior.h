@@ -110,6 +110,12 @@ struct FlowPriorNetImpl : torch::nn::Module {
   bool kinematic_head = false;
   bool kinematic_noise = false;
   bool kinematic_skip = false;
+  bool kinematic_bones = false;  // model.kinematic_head.bones.enabled
+  bool kinematic_rigid = false;  // model.kinematic_head.bones.rigid
+  // Kinematic head: the channels [B, T, C] (metres, not z-scored) the head is trained
+  // to write for world joints [B, T, J, 3]: kinematic_channels, with the pose block
+  // as bone vectors under model.kinematic_head.bones.
+  torch::Tensor head_target_channels(const torch::Tensor& world, const torch::Tensor& mask) const;
   // model.text_encoder.frozen with a pretrained encoder: encode_text runs `text`
   // without gradient and in eval mode whatever mode the bundle is in.
   bool text_frozen = false;
@@ -124,6 +130,11 @@ struct FlowPriorNetImpl : torch::nn::Module {
   // With the kinematic head only (registered last, so other checkpoints keep their
   // buffer list): the training split's per-channel mean and std [C].
   torch::Tensor kin_mean, kin_std;
+  // With model.kinematic_head.bones only (registered after those): the pose block's
+  // maps between bone vectors and root-relative joints [J-1, J-1]
+  // (models/kinematic_head.h) and, for `rigid`, the bones' mean lengths [J-1] over
+  // the training split, all filled by the trainer and saved with the weights.
+  torch::Tensor kin_from_bones, kin_to_bones, kin_bone_length;
 };
 TORCH_MODULE(FlowPriorNet);
 

@@ -143,6 +143,10 @@ void write_flow_weights(const FlowPrior& prior, const FlowWeightsSource& source,
     fail("flow prior '{}': model.kinematic_head.skip.enabled is not part of the weights format (version {}); "
          "export a prior without the skip, or use the run directory itself",
          source.run_dir, kFlowWeightsVersion);
+  if (net.kinematic_bones)
+    fail("flow prior '{}': model.kinematic_head.bones is not part of the weights format (version {}); export a "
+         "prior without it, or use the run directory itself",
+         source.run_dir, kFlowWeightsVersion);
   const FlowTransformerOptions& o = net.transformer->opt;
   const FlowPriorConfig& c = prior.config();
   FlowPriorConfig dumped = c;

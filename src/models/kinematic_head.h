@@ -61,6 +61,33 @@ struct KinematicSkipConfig : Config {
   bool omitted_from_dump() const override { return !enabled; }
 };
 
+// The head's pose block as bone vectors (ours, `model.kinematic_head.bones`, issue
+// 13): the (J-1)*3 channels after the root's five are each joint's offset from its
+// parent instead of from the root, and the root-relative joints are their running
+// sum down the skeleton's chains (a fixed linear map, `bones_to_relative`). Why: the
+// adopted head writes every joint's offset from the root anew on every frame, so a
+// bone's length is the difference of two independently erring channels (the
+// measured 9.5 mm bone-length std); here each bone's length is what one channel
+// triple says. `rigid` then writes only the bone's direction: the vector is
+// normalised and scaled by the bone's mean length over the training split, so the
+// decoded skeleton has the data's bone lengths on every frame (a parametrisation of
+// the network's output, like a rotation-based head with forward kinematics; the
+// flow's state, noise and samplers stay on absolute joints, and CFG and ProjFlow's
+// projection act on the decoded joints as before). Its own section, absent from the
+// dump when off, so runs without it keep their names.
+struct KinematicBonesConfig : Config {
+  bool enabled = false;
+  bool rigid = false;
+  void visit(FieldVisitor& v) override {
+    v("enabled", enabled,
+      "the head's pose channels are bone vectors (joint minus parent), summed down the chains to root-relative "
+      "joints (off: root-relative joints)");
+    v("rigid", rigid,
+      "normalise each bone vector and scale it by the bone's mean length over the training split (needs enabled)");
+  }
+  bool omitted_from_dump() const override { return !enabled && !rigid; }
+};
+
 struct KinematicHeadConfig : Config {
   bool enabled = false;
   // Weight of the loss on the head's own channels (each z-scored by its training
@@ -70,6 +97,7 @@ struct KinematicHeadConfig : Config {
   double weight = 1.0;
   KinematicNoiseConfig noise;
   KinematicSkipConfig skip;
+  KinematicBonesConfig bones;
   void visit(FieldVisitor& v) override {
     v("enabled", enabled,
       "the network writes x1_hat as root steps, root height, root position and root-relative joints "
@@ -77,8 +105,11 @@ struct KinematicHeadConfig : Config {
     v("weight", weight, "weight of the z-scored loss on those channels beside the flow loss", in_range(0.0, 1e4));
     v("skip", skip, "EDM-style per-channel skip from x_t (off by default)");
     v("noise", noise, "source noise in the head's channels (off by default)");
+    v("bones", bones, "pose channels as bone vectors, optionally rigid (off by default)");
   }
-  bool omitted_from_dump() const override { return !enabled && weight == 1.0 && !noise.enabled && !skip.enabled; }
+  bool omitted_from_dump() const override {
+    return !enabled && weight == 1.0 && !noise.enabled && !skip.enabled && bones.omitted_from_dump();
+  }
 };
 
 // Channels per frame for J joints: [step_x, step_z, root_y, root_x, root_z, (J-1)*3
@@ -97,13 +128,33 @@ torch::Tensor kinematic_channels(const torch::Tensor& world, const torch::Tensor
 // output; finite (and meaningless) on padded frames.
 torch::Tensor joints_from_kinematic(const torch::Tensor& channels, const torch::Tensor& valid);
 
+// Bone-vector pose block (KinematicBonesConfig). For a skeleton's parents (J, -1 for
+// the root, parents before children) the [J-1, J-1] matrices between the pose block
+// as root-relative joints and as bone vectors (joint minus parent), indexed by joint
+// - 1: relative = A bones (A[j][k] = 1 when joint k+1 is joint j+1 or one of its
+// ancestors below the root), bones = D relative (D = A^-1: 1 on the diagonal, -1 at
+// the parent's column).
+torch::Tensor bones_to_relative_matrix(const std::vector<int>& parents);
+torch::Tensor relative_to_bones_matrix(const std::vector<int>& parents);
+// Applies such a matrix M to the pose block of channels [B, T, C]: block joint j
+// becomes sum_k M[j][k] block joint k; the root's five channels pass unchanged.
+torch::Tensor map_pose_block(const torch::Tensor& channels, const torch::Tensor& M);
+// Each bone vector of the pose block scaled to `lengths` [J-1] metres (its direction
+// kept; a vector shorter than 1e-6 m is taken as it is, scaled by length / 1e-6).
+torch::Tensor rigid_pose_block(const torch::Tensor& channels, const torch::Tensor& lengths);
+
 // Per-channel mean and std (each [C], std floored at 1 mm) over the valid frames of
 // world clips, accumulated chunk by chunk.
 struct KinematicStats {
   torch::Tensor sum, sum_sq;  // [C] double
   torch::Tensor count;        // [C] double: frames (steps count frame pairs)
-  void add(const torch::Tensor& world, const torch::Tensor& valid);
+  torch::Tensor bone_length_sum;  // [J-1] double, with to_bones only
+  double bone_frames = 0;
+  // to_bones (relative_to_bones_matrix), when given, turns the pose block into bone
+  // vectors before counting, and the bones' lengths are averaged too.
+  void add(const torch::Tensor& world, const torch::Tensor& valid, const torch::Tensor& to_bones = {});
   std::pair<torch::Tensor, torch::Tensor> mean_std() const;  // float [C]
+  torch::Tensor mean_bone_lengths() const;                    // float [J-1] metres
 };
 
 }  // namespace mc

@@ -136,15 +136,21 @@ TEST_CASE("flow weights: a prior with the kinematic head describes it in /model 
   CHECK_FALSE(f.openGroup("weights").nameExists("kin_mean"));
 }
 
-TEST_CASE("flow weights: a prior with the head's skip is refused, naming the key, and no file is left",
+TEST_CASE("flow weights: a prior with the head's skip or bones is refused, naming the key, and no file is left",
           "[flow_weights][kinematic]") {
   TempDir dir("flow_weights_skip");
-  const fs::path run = dir.path / "skip";
-  write_random_prior_run(run, 40, "flow_prior", kPriorWords,
-                         "  prediction: clean\n  kinematic_head:\n    enabled: true\n    skip:\n      enabled: true\n");
-  FlowPrior prior = FlowPrior::load(run.string());
-  const std::string out = (dir.path / "skip.h5").string();
-  CHECK_THROWS_WITH(write_flow_weights(prior, {run.string(), "model: {}\n", "abc123"}, out),
-                    Catch::Contains("model.kinematic_head.skip.enabled"));
-  CHECK_FALSE(fs::exists(out));
+  const std::vector<std::pair<std::string, std::string>> cases = {
+      {"    skip:\n      enabled: true\n", "model.kinematic_head.skip.enabled"},
+      {"    bones:\n      enabled: true\n      rigid: true\n", "model.kinematic_head.bones"}};
+  for (size_t i = 0; i < cases.size(); ++i) {
+    INFO(cases[i].second);
+    const fs::path run = dir.path / ("run" + std::to_string(i));
+    write_random_prior_run(run, 40, "flow_prior", kPriorWords,
+                           "  prediction: clean\n  kinematic_head:\n    enabled: true\n" + cases[i].first);
+    FlowPrior prior = FlowPrior::load(run.string());
+    const std::string out = (dir.path / ("out" + std::to_string(i) + ".h5")).string();
+    CHECK_THROWS_WITH(write_flow_weights(prior, {run.string(), "model: {}\n", "abc123"}, out),
+                      Catch::Contains(cases[i].second));
+    CHECK_FALSE(fs::exists(out));
+  }
 }

@@ -7,6 +7,7 @@
 #include <ATen/CPUGeneratorImpl.h>
 
 #include "core/error.h"
+#include "data/skeleton.h"
 #include "models/flow_prior.h"
 #include "models/kinematic_head.h"
 #include "trainer_test_util.h"
@@ -267,4 +268,96 @@ TEST_CASE("kinematic head skip: the clean head at t = 0, x itself as t -> 1, the
     if (p.grad().defined()) gsq += p.grad().pow(2).sum().item<double>();
   CHECK(std::isfinite(l.item<double>()));
   CHECK(gsq > 0);
+}
+
+TEST_CASE("kinematic head bones: the pose block as bone vectors is exact and linear, and rigid bones keep the "
+          "training split's lengths on every frame",
+          "[flow][kinematic]") {
+  const Skeleton sk = humanml3d_skeleton();
+  const int64_t J = sk.num_joints(), n = J - 1, T = 7;
+  auto A = bones_to_relative_matrix(sk.parents), D = relative_to_bones_matrix(sk.parents);
+  CHECK(torch::allclose(torch::matmul(A, D), torch::eye(n), 0, 1e-6));
+  auto mask = prefix_mask({7, 3}, T);
+  torch::manual_seed(11);
+  auto world = wandering_clips(2, T, J).to(torch::kFloat64);
+  auto rel_ch = kinematic_channels(world, mask);
+  auto bone_ch = map_pose_block(rel_ch, D);
+  // A bone channel triple is the joint minus its parent, for every joint off the root.
+  for (int64_t j = 1; j < J; ++j) {
+    auto want = world.select(2, j) - world.select(2, sk.parents[j]);  // [2, T, 3]
+    CHECK(torch::allclose(bone_ch.narrow(2, 5 + (j - 1) * 3, 3), want, 1e-9, 1e-9));
+  }
+  CHECK(torch::allclose(map_pose_block(bone_ch, A), rel_ch, 1e-9, 1e-9));
+  // Rigid: every bone vector gets the given length, its direction kept.
+  auto lengths = torch::rand({n}, torch::kFloat64) + 0.05;
+  auto rigid = rigid_pose_block(bone_ch, lengths);
+  auto rb = rigid.narrow(2, 5, n * 3).reshape({2, T, n, 3}), ob = bone_ch.narrow(2, 5, n * 3).reshape({2, T, n, 3});
+  CHECK(torch::allclose(rb.norm(2, -1), lengths.view({1, 1, n}).expand({2, T, n}), 1e-9, 1e-9));
+  CHECK(torch::allclose((rb * ob).sum(-1), rb.norm(2, -1) * ob.norm(2, -1), 1e-9, 1e-9));
+  CHECK(torch::equal(rigid.narrow(2, 0, 5), bone_ch.narrow(2, 0, 5)));
+
+  // In a prior: off, absent from the dump; bones decode the data's channels back to
+  // the data; rigid decodes any output to the training split's bone lengths.
+  TrainJobConfig head_job, bones_job, rigid_job;
+  auto head = kin_trainer(head_job, "  kinematic_head:\n    enabled: true\n");
+  auto bones = kin_trainer(bones_job, "  kinematic_head:\n    enabled: true\n    bones:\n      enabled: true\n");
+  std::shared_ptr<MotionDataset> data;
+  auto rigid_tr = test::trainer_on_random_clips(rigid_job,
+                                                "model:\n  type: flow_prior\n  depth: 2\n  width: 32\n  heads: 2\n"
+                                                "  text_width: 16\n  text_heads: 2\n  text_ff: 32\n  text_layers: 1\n"
+                                                "  prediction: clean\n  kinematic_head:\n    enabled: true\n"
+                                                "    bones:\n      enabled: true\n      rigid: true\n",
+                                                {12, 30, 17, 9}, true, &data);
+  CHECK(dump_config(head_job).find("bones") == std::string::npos);
+  CHECK(dump_config(bones_job).find("bones") != std::string::npos);
+  auto& bn = dynamic_cast<FlowPriorNetImpl&>(bones->module());
+  auto& rn = dynamic_cast<FlowPriorNetImpl&>(rigid_tr->module());
+  REQUIRE(bn.kinematic_bones);
+  REQUIRE_FALSE(bn.kinematic_rigid);
+  REQUIRE(rn.kinematic_rigid);
+  CHECK(torch::allclose(bn.kin_to_bones, D.to(torch::kFloat32)));
+  CHECK(torch::allclose(bn.kin_from_bones, A.to(torch::kFloat32)));
+  auto wf = world.to(torch::kFloat32);
+  auto norm = (wf - bn.joint_mean) / bn.joint_std;
+  auto z = (bn.head_target_channels(wf, mask) - bn.kin_mean) / bn.kin_std;
+  auto vm = mask.view({2, T, 1, 1}).expand_as(norm);
+  CHECK(torch::allclose(bn.decode_head(z, mask).masked_select(vm), norm.masked_select(vm), 1e-4, 1e-4));
+  // The rigid lengths are the mean bone lengths over the training split's valid frames.
+  MotionBatch b = data->batch(data->split("train"), 0, 1, torch::kCPU);
+  auto tw = data->denormalize(b.joints);
+  auto tb = map_pose_block(kinematic_channels(tw, b.mask), D.to(torch::kFloat32));
+  auto tl = tb.narrow(2, 5, n * 3).reshape({tb.size(0), tb.size(1), n, 3}).norm(2, -1);  // [B, T, n]
+  auto mf = b.mask.to(torch::kFloat32).unsqueeze(-1);
+  auto want_len = (tl * mf).sum(std::vector<int64_t>{0, 1}) / mf.sum(std::vector<int64_t>{0, 1});
+  CHECK(torch::allclose(rn.kin_bone_length, want_len, 1e-4, 1e-5));
+  auto out = torch::randn({2, T, kinematic_channel_count(J)});
+  auto decoded = rn.decode_head(out, mask) * rn.joint_std + rn.joint_mean;  // world [2, T, J, 3]
+  for (int64_t j = 1; j < J; ++j) {
+    auto len = (decoded.select(2, j) - decoded.select(2, sk.parents[j])).norm(2, -1);  // [2, T]
+    CHECK(torch::allclose(len.masked_select(mask), rn.kin_bone_length[j - 1].expand({mask.sum().item<int64_t>()}),
+                          1e-4, 1e-4));
+  }
+  // Both train: finite loss, non-zero gradient.
+  for (auto* tr : {bones.get(), rigid_tr.get()}) {
+    test::same_random_weights({tr});
+    torch::manual_seed(9);
+    auto l = tr->loss({0, 1}).loss;
+    l.backward();
+    double gsq = 0;
+    for (auto& p : tr->trainable_parameters())
+      if (p.grad().defined()) gsq += p.grad().pow(2).sum().item<double>();
+    CHECK(std::isfinite(l.item<double>()));
+    CHECK(gsq > 0);
+  }
+  // Refused: bones without the head, rigid without bones, bones with the noise or the skip.
+  for (const char* bad : {"  kinematic_head:\n    bones:\n      enabled: true\n",
+                          "  kinematic_head:\n    enabled: true\n    bones:\n      rigid: true\n",
+                          "  kinematic_head:\n    enabled: true\n    bones:\n      enabled: true\n    noise:\n"
+                          "      enabled: true\n",
+                          "  kinematic_head:\n    enabled: true\n    bones:\n      enabled: true\n    skip:\n"
+                          "      enabled: true\n"}) {
+    INFO(bad);
+    TrainJobConfig job;
+    CHECK_THROWS_AS(kin_trainer(job, bad), mc::UserError);
+  }
 }
