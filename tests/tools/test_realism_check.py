@@ -53,7 +53,9 @@ class RealismCheck(unittest.TestCase):
         cx, cy = np.cov(x, rowvar=False), np.cov(y, rowvar=False)
         w, v = np.linalg.eig(cx @ cy)
         textbook = ((x.mean(0) - y.mean(0)) ** 2).sum() + np.trace(cx) + np.trace(cy) - 2 * np.sqrt(w).real.sum()
-        self.assertAlmostEqual(ref.fid(x), textbook, places=6)
+        # The textbook's eigenvalues of the non-symmetric product carry ~1e-7 of rounding
+        # that depends on the CPU's BLAS kernels (5.4e-7 on an Intel Xeon, 2026-11-29).
+        self.assertAlmostEqual(ref.fid(x), textbook, places=5)
 
     def test_decided_and_undecided(self):
         d = self.tmp.name
