@@ -107,6 +107,13 @@ std::unique_ptr<Trainable> kin_trainer(TrainJobConfig& job, const std::string& e
                                            extra,
                                        {12, 30, 17, 9}, true);
 }
+// Sum of squared gradients over a trainer's parameters after backward().
+double grad_sq(Trainable& tr) {
+  double gsq = 0;
+  for (auto& p : tr.trainable_parameters())
+    if (p.grad().defined()) gsq += p.grad().pow(2).sum().item<double>();
+  return gsq;
+}
 }  // namespace
 
 TEST_CASE("kinematic head: a flow prior with it decodes, trains, and is absent from the dump when off",
@@ -149,9 +156,7 @@ TEST_CASE("kinematic head: a flow prior with it decodes, trains, and is absent f
   auto lz = zero->loss({0, 1}).loss;
   CHECK(lo.item<double>() > lz.item<double>());
   lo.backward();
-  double gsq = 0;
-  for (auto& p : on->trainable_parameters())
-    if (p.grad().defined()) gsq += p.grad().pow(2).sum().item<double>();
+  const double gsq = grad_sq(*on);
   CHECK(std::isfinite(gsq));
   CHECK(gsq > 0);
   on->module().eval();
@@ -263,11 +268,8 @@ TEST_CASE("kinematic head skip: the clean head at t = 0, x itself as t -> 1, the
   torch::manual_seed(4);
   auto l = skip->loss({0, 1}).loss;
   l.backward();
-  double gsq = 0;
-  for (auto& p : skip->trainable_parameters())
-    if (p.grad().defined()) gsq += p.grad().pow(2).sum().item<double>();
   CHECK(std::isfinite(l.item<double>()));
-  CHECK(gsq > 0);
+  CHECK(grad_sq(*skip) > 0);
 }
 
 TEST_CASE("kinematic head bones: the pose block as bone vectors is exact and linear, and rigid bones keep the "
@@ -343,11 +345,8 @@ TEST_CASE("kinematic head bones: the pose block as bone vectors is exact and lin
     torch::manual_seed(9);
     auto l = tr->loss({0, 1}).loss;
     l.backward();
-    double gsq = 0;
-    for (auto& p : tr->trainable_parameters())
-      if (p.grad().defined()) gsq += p.grad().pow(2).sum().item<double>();
     CHECK(std::isfinite(l.item<double>()));
-    CHECK(gsq > 0);
+    CHECK(grad_sq(*tr) > 0);
   }
   // Refused: bones without the head, rigid without bones, bones with the noise or the skip.
   for (const char* bad : {"  kinematic_head:\n    bones:\n      enabled: true\n",
