@@ -189,6 +189,14 @@ torch::Tensor FlowPriorNetImpl::null_condition(int64_t B) const { return null_te
 
 // ---------------------------------------------------------------- trainer
 
+namespace {
+// model.kinematic_head.bones: the pose block's maps for the skeleton's parents.
+void set_bone_maps(FlowPriorNetImpl& net, const std::vector<int>& parents) {
+  net.kin_to_bones.copy_(relative_to_bones_matrix(parents));
+  net.kin_from_bones.copy_(bones_to_relative_matrix(parents));
+}
+}  // namespace
+
 FlowValidationInputs flow_validation_inputs(const MotionDataset& data, const std::vector<int64_t>& chunk, double t,
                                             at::Generator& gen, torch::Device device, const FlowPriorNetImpl* net) {
   FlowValidationInputs in;
@@ -237,10 +245,8 @@ class FlowPriorTrainer : public Trainable {
       // The head's channel statistics over the training split's valid frames.
       torch::Tensor to_bones;
       if (net_->kinematic_bones) {
-        const auto& parents = set.skeleton.parents;
-        to_bones = relative_to_bones_matrix(parents);
-        net_->kin_to_bones.copy_(to_bones);
-        net_->kin_from_bones.copy_(bones_to_relative_matrix(parents));
+        set_bone_maps(*net_, set.skeleton.parents);
+        to_bones = net_->kin_to_bones;
       }
       KinematicStats stats;
       for (const auto& chunk : chunked(ctx.data->split("train"), 256)) {
@@ -468,8 +474,7 @@ FlowPrior FlowPrior::untrained(const FlowPriorConfig& cfg, const Skeleton& skele
     (*p.net_)->joint_mean.copy_(torch::tensor({0.0f, 0.9f, 0.0f}));
     (*p.net_)->joint_std.copy_(torch::tensor({0.5f, 0.6f, 0.8f}));
     if ((*p.net_)->kinematic_bones) {
-      (*p.net_)->kin_to_bones.copy_(relative_to_bones_matrix(skeleton.parents));
-      (*p.net_)->kin_from_bones.copy_(bones_to_relative_matrix(skeleton.parents));
+      set_bone_maps(**p.net_, skeleton.parents);
       std::vector<float> lengths(skeleton.bone_lengths.begin() + 1, skeleton.bone_lengths.end());
       (*p.net_)->kin_bone_length.copy_(torch::tensor(lengths));
     }

@@ -64,17 +64,18 @@ struct KinematicSkipConfig : Config {
 // The head's pose block as bone vectors (ours, `model.kinematic_head.bones`, issue
 // 13): the (J-1)*3 channels after the root's five are each joint's offset from its
 // parent instead of from the root, and the root-relative joints are their running
-// sum down the skeleton's chains (a fixed linear map, `bones_to_relative`). Why: the
-// adopted head writes every joint's offset from the root anew on every frame, so a
-// bone's length is the difference of two independently erring channels (the
-// measured 9.5 mm bone-length std); here each bone's length is what one channel
-// triple says. `rigid` then writes only the bone's direction: the vector is
-// normalised and scaled by the bone's mean length over the training split, so the
-// decoded skeleton has the data's bone lengths on every frame (a parametrisation of
-// the network's output, like a rotation-based head with forward kinematics; the
-// flow's state, noise and samplers stay on absolute joints, and CFG and ProjFlow's
-// projection act on the decoded joints as before). Its own section, absent from the
-// dump when off, so runs without it keep their names.
+// sum down the skeleton's chains (a fixed linear map, `bones_to_relative_matrix`).
+// Why: the adopted head writes every joint's offset from the root anew on every
+// frame, so a bone's length is the difference of two independently erring channels
+// (part of the measured 9.5 mm bone-length std; the rest is CFG's, docs/choices.md);
+// here each bone's length is what one channel triple says. `rigid` then writes only
+// the bone's direction: the vector is normalised and scaled by the bone's mean
+// length over the training split, so the decoded skeleton has the data's bone
+// lengths on every frame (a parametrisation of the network's output, like a
+// rotation-based head with forward kinematics; the flow's state, noise and samplers
+// stay on absolute joints, and CFG and ProjFlow's projection act on the decoded
+// joints as before). Its own section, absent from the dump when off, so runs
+// without it keep their names.
 struct KinematicBonesConfig : Config {
   bool enabled = false;
   bool rigid = false;
