@@ -35,6 +35,7 @@ void HealthOptions::visit(FieldVisitor& v) {
     "evaluator training config ('' = the configs/eval/evaluator_*.yaml whose data.path is the checked data)");
   v("evaluator_overrides", evaluator_overrides, "key=value overrides of the evaluator config");
   v("data", data, "motion file whose test split is the reference ('' = data.path of the run's config)");
+  v("reference", reference, "the split the samples are compared with (default test)");
   v("ground_truth", ground_truth,
     "self-check: score the reference clips themselves (ground_truth generator) through the same pipeline");
   v("generator", generator,
@@ -180,7 +181,7 @@ HealthReport check_health(const HealthOptions& options) {
   TrainJobConfig job;
   parse_config(compose_config(cfg_file.string()), job);
 
-  // ---- data: reference = the first N test clips; floor = N held-out clips of another split
+  // ---- data: reference = the first N clips of reference.split (test); floor = N held-out clips of the other
   std::string data_path = opt.data.empty() ? job.data.path : opt.data;
   if (!fs::exists(resolve_data_path(data_path))) {
     if (!opt.data.empty() || job.data.fixture.empty())
@@ -191,22 +192,24 @@ HealthReport check_health(const HealthOptions& options) {
   data_path = resolve_data_path(data_path);
   rep.data = data_path;
   MotionSet data = read_motion_file(data_path);
-  const auto test = data.indices_of_split("test"), val = data.indices_of_split("val");
+  const std::string ref_split = opt.reference.split, other = ref_split == "test" ? "val" : "test";
+  const auto ref_all = data.indices_of_split(ref_split), other_all = data.indices_of_split(other);
   const size_t N = static_cast<size_t>(opt.samples);
-  if (N > test.size())
-    fail("samples = {} is larger than the test split of {} ({} clips)", opt.samples, data_path, test.size());
-  std::vector<size_t> ref_idx(test.begin(), test.begin() + N), floor_idx;
-  rep.reference = range_text("test", 0, N);
-  if (val.size() >= N) {
-    floor_idx.assign(val.begin(), val.begin() + N);
-    rep.floor_reference = range_text("val", 0, N);
-  } else if (test.size() >= 2 * N) {
-    floor_idx.assign(test.begin() + N, test.begin() + 2 * N);
-    rep.floor_reference = range_text("test", N, 2 * N);
+  if (N > ref_all.size())
+    fail("samples = {} is larger than the {} split of {} ({} clips)", opt.samples, ref_split, data_path,
+         ref_all.size());
+  std::vector<size_t> ref_idx(ref_all.begin(), ref_all.begin() + N), floor_idx;
+  rep.reference = range_text(ref_split, 0, N);
+  if (other_all.size() >= N) {
+    floor_idx.assign(other_all.begin(), other_all.begin() + N);
+    rep.floor_reference = range_text(other, 0, N);
+  } else if (ref_all.size() >= 2 * N) {
+    floor_idx.assign(ref_all.begin() + N, ref_all.begin() + 2 * N);
+    rep.floor_reference = range_text(ref_split, N, 2 * N);
   } else {
-    fail("samples = {}: the ground-truth floor needs {} held-out clips, but the val split of {} has {} and its test "
+    fail("samples = {}: the ground-truth floor needs {} held-out clips, but the {} split of {} has {} and its {} "
          "split {} beyond the {} reference clips; lower --samples",
-         opt.samples, N, data_path, val.size(), test.size() - N, N);
+         opt.samples, N, other, data_path, other_all.size(), ref_split, ref_all.size() - N, N);
   }
   const MotionSet reference = data.subset(ref_idx), held_out = data.subset(floor_idx);
 
@@ -305,8 +308,9 @@ HealthReport check_health(const HealthOptions& options) {
   for (auto& [k, v] : read_summary_csv(run / "summary.csv"))
     if (k.rfind("val_", 0) == 0) rep.validation[k] = v;
 
-  write_file_atomic(run / "health.md", health_markdown(rep));
-  write_file_atomic(run / "health.json", health_json(rep));
+  const std::string stem = opt.reference.file_stem();
+  write_file_atomic(run / (stem + ".md"), health_markdown(rep));
+  write_file_atomic(run / (stem + ".json"), health_json(rep));
   return rep;
 }
 

@@ -38,6 +38,23 @@ struct HealthTargets : Config {
   }
 };
 
+// Which split the samples are compared with. `val` is for choosing a sampler setting
+// (a CFG scale or interval) without looking at the test clips the tables report on;
+// its files are health_val.md / health_val.json, so the test-split report a
+// `reproduce` caches stays put. Its own section, absent from the dump at `test`, so
+// cached reports keep their options hash.
+struct HealthReferenceConfig : Config {
+  std::string split = "test";
+  void visit(FieldVisitor& v) override {
+    v("split", split,
+      "the reference clips: the first N of this split; the floor: the first N of the other one (test or val)",
+      one_of({"test", "val"}));
+  }
+  bool omitted_from_dump() const override { return split == "test"; }
+  // "health" or "health_val": the report's file name without extension.
+  std::string file_stem() const { return split == "test" ? "health" : "health_" + split; }
+};
+
 struct HealthOptions : Config {
   std::string run_dir;
   int samples = 32;
@@ -45,6 +62,7 @@ struct HealthOptions : Config {
   std::string evaluator;
   std::vector<std::string> evaluator_overrides;
   std::string data;
+  HealthReferenceConfig reference;
   bool ground_truth = false;
   std::string generator;
   std::vector<std::string> generator_overrides;
@@ -92,7 +110,8 @@ const std::vector<std::string>& health_model_types();
 // `data_path`; UserError naming the data when none is.
 std::string default_evaluator_config(const std::string& data_path);
 
-// Runs the check and writes RUN_DIR/health.md and health.json atomically. UserError
+// Runs the check and writes RUN_DIR/health.md and health.json (health_val.* with
+// reference.split = val) atomically. UserError
 // (naming the value) for a missing run directory, an unknown model type, samples < 3
 // or more than the test split, too few held-out clips for the floor.
 HealthReport check_health(const HealthOptions& options);

@@ -1,5 +1,5 @@
 // `motionctl health RUN_DIR [--samples N] [--evaluator CFG] [--seed S] [--data FILE]
-// [--ground-truth] [key=value ...]`: is a trained prior fit to test claims on?
+// [--split test|val] [--ground-truth] [key=value ...]`: is a trained prior fit to test claims on?
 // Writes RUN_DIR/health.md and health.json; `--describe` lists every option and target.
 #include <iostream>
 
@@ -15,7 +15,7 @@ void add_health_command(CLI::App& app) {
                 "with pass/fail targets; writes RUN_DIR/health.md and health.json");
   struct Args {
     std::vector<std::string> positional;  // RUN_DIR, then key=value overrides
-    std::string samples, evaluator, seed, data;
+    std::string samples, evaluator, seed, data, split;
     bool ground_truth = false, describe = false;
   };
   auto a = std::make_shared<Args>();
@@ -27,6 +27,9 @@ void add_health_command(CLI::App& app) {
                   "evaluator training config (default: configs/eval/evaluator_*.yaml trained on the run's data)");
   cmd->add_option("--seed", a->seed, "generation seed (default 0)");
   cmd->add_option("--data", a->data, "motion file whose test split is the reference (default: the run's data)");
+  cmd->add_option("--split", a->split,
+                  "reference split: test (default) or val, for choosing sampler settings off the test clips "
+                  "(writes health_val.md / health_val.json)");
   cmd->add_flag("--ground-truth", a->ground_truth,
                 "self-check: score the reference clips themselves through the same pipeline");
   cmd->add_flag("--describe", a->describe, "list every option and health target with its default");
@@ -47,6 +50,7 @@ void add_health_command(CLI::App& app) {
     if (!a->evaluator.empty()) overrides.push_back("evaluator=" + a->evaluator);
     if (!a->seed.empty()) overrides.push_back("seed=" + a->seed);
     if (!a->data.empty()) overrides.push_back("data=" + a->data);
+    if (!a->split.empty()) overrides.push_back("reference.split=" + a->split);
     if (a->ground_truth) overrides.push_back("ground_truth=true");
     HealthOptions opt;
     parse_config(config_from_string("{}", "motionctl health", overrides), opt);
@@ -57,7 +61,7 @@ void add_health_command(CLI::App& app) {
     if (opt.run_dir.empty()) fail("motionctl health needs a run directory: motionctl health RUN_DIR [--samples N]");
     HealthReport r = check_health(opt);
     std::cout << health_markdown(r) << "\n"
-              << fmt::format("wrote {0}/health.md and {0}/health.json: {1}\n", opt.run_dir,
+              << fmt::format("wrote {0}/{1}.md and {0}/{1}.json: {2}\n", opt.run_dir, opt.reference.file_stem(),
                              r.healthy() ? "healthy" : "NOT healthy");
   });
 }

@@ -51,8 +51,8 @@ class FlowGenerator : public MotionGenerator {
     return to_generated(std::move(r), std::chrono::duration<double>(Clock::now() - t0).count());
   }
   std::string describe() const override {
-    return fmt::format("flow prior {} (Euler, {} steps, cfg {}; constraints ignored)", prior_.run_dir(), s_.steps,
-                       s_.cfg_scale);
+    return fmt::format("flow prior {} (Euler, {} steps, {}; constraints ignored)", prior_.run_dir(), s_.steps,
+                       s_.describe_cfg());
   }
 
  private:
@@ -91,8 +91,8 @@ class ProjFlowGenerator : public MotionGenerator {
     return g;
   }
   std::string describe() const override {
-    return fmt::format("ProjFlow on {} ({} steps, cfg {}, metric {}, noise {}, pseudo-observations {})",
-                       prior_.run_dir(), s_.steps, s_.cfg_scale, p_.metric.type, p_.noise,
+    return fmt::format("ProjFlow on {} ({} steps, {}, metric {}, noise {}, pseudo-observations {})",
+                       prior_.run_dir(), s_.steps, s_.describe_cfg(), p_.metric.type, p_.noise,
                        p_.pseudo_observations.enabled ? "on" : "off");
   }
 
@@ -129,15 +129,15 @@ class GuidanceGenerator : public MotionGenerator {
     auto in = flow_inputs(prior_, tasks);
     auto obs = model_observations(prior_, tasks);
     auto t0 = Clock::now();
-    GuidanceStepper stepper(prior_, g_, s_.cfg_scale, std::move(obs), prior_.encode_texts(in.captions));
+    GuidanceStepper stepper(prior_, g_, std::move(obs), prior_.encode_texts(in.captions));
     auto r = sample_flow(prior_, in.captions, in.lengths, s_, seed, &stepper);
     return to_generated(std::move(r), std::chrono::duration<double>(Clock::now() - t0).count());
   }
   std::string describe() const override {
     return fmt::format(
-        "reconstruction guidance on {} ({} steps, cfg {}, scale {} on the mean squared residual, {} iterations/step, "
+        "reconstruction guidance on {} ({} steps, {}, scale {} on the mean squared residual, {} iterations/step, "
         "{} in the last {} steps, {})",
-        prior_.run_dir(), s_.steps, s_.cfg_scale, g_.scale, g_.iterations, g_.final_iterations, g_.final_steps,
+        prior_.run_dir(), s_.steps, s_.describe_cfg(), g_.scale, g_.iterations, g_.final_iterations, g_.final_steps,
         g_.clip_to_residual ? "clipped to the residual" : "unclipped");
   }
 

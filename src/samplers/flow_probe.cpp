@@ -41,6 +41,7 @@ FlowWeightsGroup flow_probe(const FlowPrior& prior, const FlowProbeOptions& opt)
   auto v_uncond = prior.raw_velocity(xd, tt, null_text, md);
   auto v_cfg = prior.velocity(xd, tt, text, md, opt.cfg_scale);
   FlowStep st;
+  st.cfg_scale = opt.cfg_scale;
   st.index = opt.step;
   st.steps = opt.steps;
   st.t = t;

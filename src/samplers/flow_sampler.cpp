@@ -12,6 +12,11 @@ namespace mc {
 
 // ---------------------------------------------------------------- sampling
 
+std::string FlowSamplerConfig::describe_cfg() const {
+  if (cfg_interval.omitted_from_dump()) return fmt::format("cfg {}", cfg_scale);
+  return fmt::format("cfg {} on t in [{}, {})", cfg_scale, cfg_interval.start, cfg_interval.end);
+}
+
 torch::Tensor FlowStep::fresh_noise() const {
   if (prior) return prior->net()->draw_noise(mask, x.size(2), *generator);
   return torch::randn(x.sizes(), *generator, torch::TensorOptions());
@@ -65,7 +70,8 @@ FlowSampleResult sample_flow(const FlowPrior& prior, const std::vector<std::stri
       st.sample_ids = ids;
       st.generator = &gen;
       st.prior = &prior;
-      st.v = prior.velocity(x, torch::full({B}, st.t, torch::TensorOptions().device(dev)), text, mask, cfg.cfg_scale);
+      st.cfg_scale = cfg.scale_at(st.t);
+      st.v = prior.velocity(x, torch::full({B}, st.t, torch::TensorOptions().device(dev)), text, mask, st.cfg_scale);
       x = step_rule.step(st);
     }
     auto world = prior.denormalize(x).to(torch::kCPU) * mask.to(torch::kCPU).view({B, T, 1, 1}).to(torch::kFloat32);

@@ -248,9 +248,9 @@ torch::Tensor ProjFlowStepper::step(const FlowStep& s) {
 
 // ---------------------------------------------------------------- guidance
 
-GuidanceStepper::GuidanceStepper(const FlowPrior& prior, const GuidanceConfig& cfg, double cfg_scale,
+GuidanceStepper::GuidanceStepper(const FlowPrior& prior, const GuidanceConfig& cfg,
                                  std::vector<LinearObservation> model_observations, torch::Tensor text)
-    : prior_(prior), cfg_(cfg), cfg_scale_(cfg_scale), obs_(std::move(model_observations)), text_(std::move(text)) {}
+    : prior_(prior), cfg_(cfg), obs_(std::move(model_observations)), text_(std::move(text)) {}
 
 torch::Tensor GuidanceStepper::step(const FlowStep& s) {
   torch::Tensor x = s.x;
@@ -276,7 +276,7 @@ torch::Tensor GuidanceStepper::step(const FlowStep& s) {
         auto xg = x.detach().requires_grad_(true);
         auto v2 = prior_.raw_velocity(torch::cat({xg, xg}), torch::cat({tt, tt}), torch::cat({text, null}),
                                       torch::cat({s.mask, s.mask}));
-        auto v = v2.narrow(0, B, B) + cfg_scale_ * (v2.narrow(0, 0, B) - v2.narrow(0, B, B));
+        auto v = v2.narrow(0, B, B) + s.cfg_scale * (v2.narrow(0, 0, B) - v2.narrow(0, B, B));
         auto x1 = xg + (1 - s.t) * v;  // eq. (5), differentiable in x
         // Residuals are in world units: affine_to_model moved the normaliser into A.
         auto r = rows.residual(x1);
@@ -292,7 +292,7 @@ torch::Tensor GuidanceStepper::step(const FlowStep& s) {
         }
         x = (x - step).detach();
       }
-      auto v = prior_.velocity(x, tt, text, s.mask, cfg_scale_);
+      auto v = prior_.velocity(x, tt, text, s.mask, s.cfg_scale);
       return x + (s.t_next - s.t) * v;
     }
   }

@@ -161,14 +161,14 @@ struct GuidanceConfig : Config {
 
 class GuidanceStepper : public FlowStepper {
  public:
-  GuidanceStepper(const FlowPrior& prior, const GuidanceConfig& cfg, double cfg_scale,
-                  std::vector<LinearObservation> model_observations, torch::Tensor text);
+  // CFG inside the guided re-evaluation uses the step's own scale (FlowStep::cfg_scale).
+  GuidanceStepper(const FlowPrior& prior, const GuidanceConfig& cfg, std::vector<LinearObservation> model_observations,
+                  torch::Tensor text);
   torch::Tensor step(const FlowStep& s) override;
 
  private:
   const FlowPrior& prior_;
   GuidanceConfig cfg_;
-  double cfg_scale_;
   std::vector<LinearObservation> obs_;
   torch::Tensor text_;  // [N, width] pooled text vectors of every sample
 };

@@ -225,6 +225,24 @@ TEST_CASE("motionctl health: ground-truth self-check is clean, a random flow pri
     REQUIRE(other.exit_code == 0);
     CHECK(slurp(prior / "health.json") != first);
   }
+  {  // --split val: the val clips are the reference, test the floor, in files of their own
+    const std::string test_report = slurp(prior / "health.json");
+    auto r = run_motionctl(fmt::format("health {} --ground-truth --split val {}", prior.string(), bed.common()));
+    INFO(r.output);
+    REQUIRE(r.exit_code == 0);
+    CHECK(r.output.find("health_val.json") != std::string::npos);
+    REQUIRE(python_json_ok(prior / "health_val.json"));
+    HealthReport h = read_health_json((prior / "health_val.json").string());
+    CHECK(h.reference == "val[0:8]");
+    CHECK(h.floor_reference == "test[0:8]");
+    CHECK(std::abs(metric(h, "fid").value) < 1e-6);
+    CHECK(h.healthy());
+    CHECK(slurp(prior / "health_val.md").find("val[0:8]") != std::string::npos);
+    CHECK(slurp(prior / "health.json") == test_report);  // the test-split report stays put
+    auto bad = run_motionctl(fmt::format("health {} --split train {}", prior.string(), bed.common()));
+    CHECK(bad.exit_code == 2);
+    CHECK(bad.output.find("reference.split") != std::string::npos);
+  }
 }
 
 TEST_CASE("health of the token priors (decoded samples) and the VQ tokenizer (reconstructions)", "[health]") {

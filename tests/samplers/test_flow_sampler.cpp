@@ -8,6 +8,7 @@
 #include <random>
 
 #include "core/atomic_file.h"
+#include "core/config.h"
 #include "core/error.h"
 #include "data/motion_set.h"
 #include "data/skeleton.h"
@@ -122,6 +123,63 @@ TEST_CASE("Euler sampler: time grid, step hook, seeding and lengths", "[flow]") 
   CHECK(m.t_max == 40);
   CHECK(m.splits[0] == "sample");
   CHECK(m.captions[2][0] == "forward");
+}
+
+namespace {
+// Records the CFG scale of every step, then takes the Euler step.
+struct ScaleRecorder : FlowStepper {
+  std::vector<double> scales;
+  torch::Tensor step(const FlowStep& s) override {
+    scales.push_back(s.cfg_scale);
+    return s.x + (s.t_next - s.t) * s.v;
+  }
+};
+FlowSamplerConfig sampler_config(const std::vector<std::string>& overrides) {
+  FlowSamplerConfig cfg;
+  parse_config(config_from_string("{}", "sampler", overrides), cfg);
+  return cfg;
+}
+}  // namespace
+
+TEST_CASE("cfg_interval: CFG only on the steps that start inside [start, end); the default guides every step",
+          "[flow]") {
+  FlowSamplerConfig plain;
+  for (double t : {0.0, 0.3, 0.7, 0.999}) CHECK(plain.scale_at(t) == 2.5);
+  CHECK(dump_config(plain).find("cfg_interval") == std::string::npos);  // existing runs keep their hashes
+  auto window = sampler_config({"cfg_interval.start=0.3", "cfg_interval.end=0.7"});
+  CHECK(window.scale_at(0.29) == 1.0);
+  CHECK(window.scale_at(0.3) == 2.5);
+  CHECK(window.scale_at(0.69) == 2.5);
+  CHECK(window.scale_at(0.7) == 1.0);
+  CHECK(dump_config(window).find("cfg_interval") != std::string::npos);
+  CHECK(window.describe_cfg() == "cfg 2.5 on t in [0.3, 0.7)");
+  auto empty = user_error_of([] { sampler_config({"cfg_interval.start=0.6", "cfg_interval.end=0.6"}); });
+  CHECK(empty.find("start (0.6) must be below end (0.6)") != std::string::npos);
+  CHECK(user_error_of([] { sampler_config({"cfg_interval.end=1.5"}); }).find("cfg_interval.end") !=
+        std::string::npos);
+
+  TempDir t("prior_cfg_interval");
+  write_random_prior_run(t.path);
+  FlowPrior p = FlowPrior::load(t.path.string());
+  std::vector<std::string> caps = {"a person walks", "a person jumps"};
+  std::vector<int> lens = {40, 23};
+  auto with = [&](std::vector<std::string> o) {
+    o.push_back("steps=5");  // steps start at t = 0, 0.2, 0.4, 0.6, 0.8
+    return sampler_config(o);
+  };
+  ScaleRecorder rec;
+  auto windowed = sample_flow(p, caps, lens, with({"cfg_interval.start=0.5", "cfg_interval.end=0.7"}), 3, &rec);
+  CHECK(rec.scales == std::vector<double>{1.0, 1.0, 1.0, 2.5, 1.0});
+  // An interval no step starts in is the conditional sampler (s = 1) exactly.
+  auto none = sample_flow(p, caps, lens, with({"cfg_interval.start=0.9"}), 3);
+  auto conditional = sample_flow(p, caps, lens, with({"cfg_scale=1"}), 3);
+  CHECK(torch::equal(none.world, conditional.world));
+  // [0, 1) written out is the default; the window changes the sample.
+  auto spelled = sample_flow(p, caps, lens, with({"cfg_interval.start=0", "cfg_interval.end=1"}), 3);
+  auto guided = sample_flow(p, caps, lens, with({}), 3);
+  CHECK(torch::equal(spelled.world, guided.world));
+  CHECK_FALSE(torch::allclose(windowed.world, guided.world, 1e-4, 1e-4));
+  CHECK_FALSE(torch::allclose(windowed.world, conditional.world, 1e-4, 1e-4));
 }
 
 TEST_CASE("non-finite network output is a UserError, never a file", "[flow]") {
