@@ -141,7 +141,7 @@ FlowSamplerConfig sampler_config(const std::vector<std::string>& overrides) {
 }
 }  // namespace
 
-TEST_CASE("cfg_interval: CFG only on the steps that start inside [start, end); the default guides every step",
+TEST_CASE("cfg_interval: CFG only on the steps that start inside the interval, the default guides every step",
           "[flow]") {
   FlowSamplerConfig plain;
   for (double t : {0.0, 0.3, 0.7, 0.999}) CHECK(plain.scale_at(t) == 2.5);
