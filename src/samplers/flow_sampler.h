@@ -20,7 +20,7 @@ namespace mc {
 // bone-length std from 4.7 to 9.5 mm (docs/choices.md, "The CFG scale is the
 // trade-off"); those are fine details that the last, nearly clean steps decide,
 // while text agreement and realism are settled early. Its own section, absent from
-// the dump at the default [0, 1] (guidance on every step, as both papers), so
+// the dump at the default [0, 1) (guidance on every step, as ProjFlow), so
 // existing runs keep their names.
 struct CfgIntervalConfig : Config {
   double start = 0.0;
