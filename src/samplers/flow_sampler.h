@@ -18,8 +18,9 @@ namespace mc {
 // conditional velocity alone (s = 1). Why: on our flow prior the extrapolation
 // v_u + s (v_c - v_u) is what takes foot skating from 2.7x to 5.0x ground truth and
 // bone-length std from 4.7 to 9.5 mm (docs/choices.md, "The CFG scale is the
-// trade-off"); those are fine details that the last, nearly clean steps decide,
-// while text agreement and realism are settled early. Its own section, absent from
+// trade-off"), and the two come from different times: guidance after t ~ 0.7 drifts
+// the bones, guidance before t ~ 0.3 raises skating but also buys most of the FID
+// ("Guidance in a limited interval"). Its own section, absent from
 // the dump at the default [0, 1) (guidance on every step, as ProjFlow), so
 // existing runs keep their names.
 struct CfgIntervalConfig : Config {
