@@ -505,10 +505,17 @@ torch::Tensor FlowPrior::velocity(const torch::Tensor& x, const torch::Tensor& t
   torch::NoGradGuard ng;
   const int64_t B = x.size(0);
   auto tt = t.to(x.device(), torch::kFloat32).reshape({-1}).expand({B});
-  auto v2 = raw_velocity(torch::cat({x, x}), torch::cat({tt, tt}), torch::cat({text, null_texts(B)}),
-                         torch::cat({mask, mask}));
-  auto vc = v2.narrow(0, 0, B), vu = v2.narrow(0, B, B);
-  auto v = vu + cfg_scale * (vc - vu);
+  torch::Tensor v;
+  if (cfg_scale == 1.0) {
+    // s = 1 is the conditional velocity: skip the null-text half of the batch (the
+    // steps outside a CFG interval, FlowSamplerConfig::cfg_interval, cost half).
+    v = raw_velocity(x, tt, text, mask);
+  } else {
+    auto v2 = raw_velocity(torch::cat({x, x}), torch::cat({tt, tt}), torch::cat({text, null_texts(B)}),
+                           torch::cat({mask, mask}));
+    auto vc = v2.narrow(0, 0, B), vu = v2.narrow(0, B, B);
+    v = vu + cfg_scale * (vc - vu);
+  }
   // Only valid frames matter; padded rows are garbage by design but must not poison the check.
   auto valid = mask.to(torch::kBool).view({B, -1, 1, 1}).expand_as(v);
   if (!torch::isfinite(v.masked_select(valid)).all().item<bool>())

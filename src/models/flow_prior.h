@@ -173,8 +173,8 @@ class FlowPrior {
   torch::Tensor raw_velocity(const torch::Tensor& x, const torch::Tensor& t, const torch::Tensor& text,
                              const torch::Tensor& mask) const;
   // Classifier-free guided velocity v_u + s (v_c - v_u), conditional and unconditional
-  // halves in one forward of the doubled batch. UserError when the network output is
-  // not finite.
+  // halves in one forward of the doubled batch (s = 1: the conditional batch alone).
+  // UserError when the network output is not finite.
   torch::Tensor velocity(const torch::Tensor& x, const torch::Tensor& t, const torch::Tensor& text,
                          const torch::Tensor& mask, double cfg_scale) const;
 
