@@ -29,12 +29,12 @@ namespace fs = std::filesystem;
 
 void HealthOptions::visit(FieldVisitor& v) {
   v("run_dir", run_dir, "the trained run to check (model.type flow_prior, tmd_prior, masked_prior or vq_tokenizer)");
-  v("samples", samples, "N: generated samples = reference test clips = held-out floor clips (>= 3)");
+  v("samples", samples, "N: generated samples = reference clips = held-out floor clips (>= 3)");
   v("seed", seed, "generation seed; evaluation replicate r reshuffles R-precision pools with seed + r");
   v("evaluator", evaluator,
     "evaluator training config ('' = the configs/eval/evaluator_*.yaml whose data.path is the checked data)");
   v("evaluator_overrides", evaluator_overrides, "key=value overrides of the evaluator config");
-  v("data", data, "motion file whose test split is the reference ('' = data.path of the run's config)");
+  v("data", data, "motion file whose reference.split is the reference ('' = data.path of the run's config)");
   v("reference", reference, "the split the samples are compared with (default test)");
   v("ground_truth", ground_truth,
     "self-check: score the reference clips themselves (ground_truth generator) through the same pipeline");

@@ -113,7 +113,7 @@ std::string default_evaluator_config(const std::string& data_path);
 // Runs the check and writes RUN_DIR/health.md and health.json (health_val.* with
 // reference.split = val) atomically. UserError
 // (naming the value) for a missing run directory, an unknown model type, samples < 3
-// or more than the test split, too few held-out clips for the floor.
+// or more than the reference split, too few held-out clips for the floor.
 HealthReport check_health(const HealthOptions& options);
 
 std::string health_markdown(const HealthReport& r);

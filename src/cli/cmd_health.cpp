@@ -1,6 +1,7 @@
 // `motionctl health RUN_DIR [--samples N] [--evaluator CFG] [--seed S] [--data FILE]
 // [--split test|val] [--ground-truth] [key=value ...]`: is a trained prior fit to test claims on?
-// Writes RUN_DIR/health.md and health.json; `--describe` lists every option and target.
+// Writes RUN_DIR/health.md and health.json (health_val.* with --split val); `--describe`
+// lists every option and target.
 #include <iostream>
 
 #include "cli/commands.h"
@@ -26,7 +27,7 @@ void add_health_command(CLI::App& app) {
   cmd->add_option("--evaluator", a->evaluator,
                   "evaluator training config (default: configs/eval/evaluator_*.yaml trained on the run's data)");
   cmd->add_option("--seed", a->seed, "generation seed (default 0)");
-  cmd->add_option("--data", a->data, "motion file whose test split is the reference (default: the run's data)");
+  cmd->add_option("--data", a->data, "motion file whose --split is the reference (default: the run's data)");
   cmd->add_option("--split", a->split,
                   "reference split: test (default) or val, for choosing sampler settings off the test clips "
                   "(writes health_val.md / health_val.json)");
