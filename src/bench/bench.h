@@ -22,6 +22,9 @@ struct LinkedBlas {
   std::vector<std::string> libraries;  // e.g. /usr/lib/x86_64-linux-gnu/openblas-openmp/libblas.so.3
   std::string openblas_config;         // openblas_get_config(), "" when OpenBLAS is not loaded
   bool reference = false;              // Debian's reference BLAS (netlib) is among the libraries
+  // Set when OpenBLAS is still on its Prescott fallback although the CPU has a
+  // better kernel set (core/process_env.h): the set it should run, e.g. "SkylakeX".
+  std::string better_coretype;
 };
 LinkedBlas linked_blas();
 

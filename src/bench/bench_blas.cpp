@@ -4,6 +4,7 @@
 // blamed the BLAS while OpenMP threads of other jobs held the cores), so the check
 // also reads which BLAS is mapped into the process and how much CPU it got.
 #include "bench/bench.h"
+#include "core/process_env.h"
 
 #include <dlfcn.h>
 #include <sys/resource.h>
@@ -66,6 +67,7 @@ LinkedBlas linked_blas() {
   using ConfigFn = char* (*)();
   if (auto fn = reinterpret_cast<ConfigFn>(::dlsym(RTLD_DEFAULT, "openblas_get_config")))
     if (const char* c = fn()) out.openblas_config = c;
+  out.better_coretype = openblas_better_coretype();
   return out;
 }
 
@@ -74,6 +76,14 @@ std::string blas_verdict(const BlasBenchResult& r, const LinkedBlas& blas, doubl
   if (blas.reference)
     return "WRONG BLAS: torch calls Debian's reference BLAS (~50x slower than OpenBLAS). Install libopenblas0-openmp "
            "(make deps does) and check `update-alternatives --display libblas.so.3-x86_64-linux-gnu`.";
+  // Before the GFLOP/s floor: the SSE3 kernels still pass it (~25 GFLOP/s a thread
+  // on a CPU that gives ~85 with its AVX-512 set).
+  if (!blas.better_coretype.empty())
+    return fmt::format("SLOW KERNELS: OpenBLAS runs its Prescott (SSE3) kernels on this CPU, which has the instructions "
+                       "of its {0} set (OpenBLAS before 0.3.25 falls back to Prescott on CPU models it does not know). "
+                       "motionctl forces {0} itself unless OPENBLAS_CORETYPE or MOTIONCTL_NO_REEXEC is set: unset them, "
+                       "or set OPENBLAS_CORETYPE={0}",
+                       blas.better_coretype);
   if (r.gflops >= kMinHealthyGflops) return "ok";
   if (busy)
     return fmt::format("the machine is busy, not the BLAS: this process got {:.0f}% of the CPU time its {} thread(s) "

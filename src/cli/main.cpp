@@ -13,33 +13,20 @@
 #include "cli/commands.h"
 #include "core/error.h"
 #include "core/interrupt.h"
+#include "core/process_env.h"
 #include "core/resources.h"
 #include "train/distributed.h"
 
-namespace {
-
 // OpenMP threads spin while waiting by default; when the cores are shared (CI,
-// parallel builds, several runs) that turns a 6 it/s loop into 0.1 it/s. libgomp
-// reads OMP_WAIT_POLICY once, in its load-time constructor, before main() runs, so
-// setting it here is too late for this process: set it and re-execute the binary
-// once (a user's own setting wins and skips the re-exec). The re-exec loads
-// libtorch twice (~0.4 s of CPU), so it is skipped where no OpenMP worker can
-// spin: OMP_NUM_THREADS=1 (ctest, the fuzz suite). MOTIONCTL_NO_REEXEC=1 turns it
-// off, e.g. under a debugger. (A .preinit_array setenv is too early: libc's own
-// initialiser then resets environ to the original block; measured, no effect.)
-void ensure_passive_openmp(char** argv) {
-  if (std::getenv("OMP_WAIT_POLICY") || std::getenv("MOTIONCTL_NO_REEXEC")) return;
-  if (const char* n = std::getenv("OMP_NUM_THREADS"); n && std::string(n) == "1") return;
-  ::setenv("OMP_WAIT_POLICY", "PASSIVE", 1);
-  ::setenv("MOTIONCTL_NO_REEXEC", "1", 1);  // never loop, whatever the exec does
-  ::execv("/proc/self/exe", argv);
-  // exec failed (no /proc): carry on; libgomp keeps its default policy.
-}
-
-}  // namespace
+// parallel builds, several runs) that turns a 6 it/s loop into 0.1 it/s, so
+// motionctl asks for passive waiting. And Debian's OpenBLAS runs its SSE3 kernels
+// on CPU models it does not know (2.5x slower training steps here). Both libraries
+// read their settings before main(); core/process_env.h sets them and re-executes
+// the binary once (docs/choices.md, "Passive OpenMP waiting, by re-exec",
+// "OpenBLAS's Prescott fallback").
 
 int main(int argc, char** argv) {
-  ensure_passive_openmp(argv);
+  mc::reexec_with_runtime_environment(argv, /*passive_openmp=*/true);
   mc::set_command_line(argc, argv);  // `train --nproc N` starts its ranks with it
   // A data-parallel rank says which one it is in its errors.
   std::string who = "motionctl";
