@@ -38,8 +38,11 @@ def parse_args(argv):
     p = argparse.ArgumentParser(description="Curve of prior health against training CPU time.")
     p.add_argument("run", help="a finished training run with checkpoints/snapshot_*.pt")
     p.add_argument("--samples", type=int, default=256, help="N of each health check (default 256)")
+    p.add_argument("--split", choices=("test", "val"), default="test",
+                   help="reference split of each check (`motionctl health --split`; default test). val keeps "
+                        "the test clips out of a choice of training length or sampler setting")
     p.add_argument("--out", default=None, help="folder of the views and curve files "
-                                               "(default runs/health_curve/<run name>)")
+                                               "(default runs/health_curve/<run name>[_val])")
     p.add_argument("--motionctl", default=os.environ.get("MOTIONCTL", "build/motionctl"))
     p.epilog = "Arguments after -- go to `motionctl health` (e.g. -- --evaluator CFG key=value)."
     a, rest = p.parse_known_args(argv)
@@ -96,7 +99,9 @@ def main(argv):
     snaps = sorted(glob.glob(os.path.join(run, "checkpoints", "snapshot_*.pt")))
     if not snaps:
         fail(f"'{run}' has no checkpoints/snapshot_*.pt; train it with `motionctl train CONFIG --snapshot-every N`")
-    out = a.out or os.path.join("runs", "health_curve", os.path.basename(run))
+    # One folder per split: a view is rebuilt (emptied) before each check.
+    out = a.out or os.path.join("runs", "health_curve",
+                                os.path.basename(run) + ("" if a.split == "test" else "_val"))
     os.makedirs(out, exist_ok=True)
     walls, threads = wall_at_steps(run), run_threads(run)
     final_step = max(walls)
@@ -106,10 +111,10 @@ def main(argv):
     rows = []
     for step, weights in points:
         view = os.path.join(out, f"step_{step:06d}")
-        health = os.path.join(view, "health.json")
+        health = os.path.join(view, "health.json" if a.split == "test" else "health_val.json")
         if not os.path.exists(health):
             make_view(run, weights, view, step == final_step)
-            cmd = [a.motionctl, "health", view, "--samples", str(a.samples)] + a.health_args
+            cmd = [a.motionctl, "health", view, "--samples", str(a.samples), "--split", a.split] + a.health_args
             print("+", " ".join(cmd), flush=True)
             r = subprocess.run(cmd)
             if r.returncode != 0:
@@ -131,8 +136,8 @@ def main(argv):
         w.writerows(rows)
     with open(os.path.join(out, "health_curve.md"), "w") as f:
         threads_txt = "/".join(str(t) for t in threads)
-        f.write(f"# Health against training time: `{run}` (N = {a.samples}; trained on {threads_txt} "
-                f"torch threads)\n\n")
+        f.write(f"# Health against training time: `{run}` (N = {a.samples}, {a.split} split; trained on "
+                f"{threads_txt} torch threads)\n\n")
         f.write("| step | train min | " + " | ".join(lbl for _, lbl, _ in TARGETED) + " | targets missed |\n")
         f.write("|---:|---:|" + "---:|" * len(TARGETED) + "---:|\n")
         for r in rows:
