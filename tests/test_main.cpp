@@ -8,6 +8,6 @@
 #include "core/process_env.h"
 
 int main(int argc, char** argv) {
-  mc::reexec_with_runtime_environment(argv, /*passive_openmp=*/true);
+  mc::reexec_with_runtime_environment(argv);
   return Catch::Session().run(argc, argv);
 }

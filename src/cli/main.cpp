@@ -26,7 +26,7 @@
 // "OpenBLAS's Prescott fallback").
 
 int main(int argc, char** argv) {
-  mc::reexec_with_runtime_environment(argv, /*passive_openmp=*/true);
+  mc::reexec_with_runtime_environment(argv);
   mc::set_command_line(argc, argv);  // `train --nproc N` starts its ranks with it
   // A data-parallel rank says which one it is in its errors.
   std::string who = "motionctl";

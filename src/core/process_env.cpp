@@ -39,10 +39,10 @@ std::string openblas_coretype_override() {
   return openblas_better_coretype();
 }
 
-void reexec_with_runtime_environment(char** argv, bool passive_openmp) {
+void reexec_with_runtime_environment(char** argv) {
   if (std::getenv("MOTIONCTL_NO_REEXEC")) return;
   bool changed = false;
-  if (passive_openmp && !std::getenv("OMP_WAIT_POLICY")) {
+  if (!std::getenv("OMP_WAIT_POLICY")) {
     const char* n = std::getenv("OMP_NUM_THREADS");
     if (!(n && std::string(n) == "1")) {
       ::setenv("OMP_WAIT_POLICY", "PASSIVE", 1);

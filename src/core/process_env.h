@@ -33,10 +33,10 @@ std::string openblas_corename();
 // Sets what this process still needs and re-executes /proc/self/exe with the same
 // arguments, at most once (MOTIONCTL_NO_REEXEC=1 is set for the child, and a
 // user's MOTIONCTL_NO_REEXEC=1 skips all of it, e.g. under a debugger):
-// - OMP_WAIT_POLICY=PASSIVE when `passive_openmp`, the variable is unset and
+// - OMP_WAIT_POLICY=PASSIVE when the variable is unset and
 //   OMP_NUM_THREADS is not 1 (a lone thread cannot spin against a neighbour);
 // - OPENBLAS_CORETYPE=openblas_coretype_override() when that is not "".
 // Returns only when nothing needed changing or the exec failed (no /proc).
-void reexec_with_runtime_environment(char** argv, bool passive_openmp);
+void reexec_with_runtime_environment(char** argv);
 
 }  // namespace mc
