@@ -38,6 +38,8 @@ def parse_args(argv):
     p.add_argument("--steps", type=int, default=50, help="sampler steps (the standard profile's 50)")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--extra", nargs="*", default=[], help="further generate overrides (generator.guidance.*)")
+    p.add_argument("--common", nargs="*", default=[],
+                   help="generate overrides for every arm, the prior's too (e.g. generator.sampler.cfg_interval.end=0.97)")
     p.add_argument("--out", required=True, help="CSV of every (arm, density) error")
     return p.parse_args(argv)
 
@@ -50,7 +52,7 @@ def run_arm(args, generator, overrides, density, tmp):
            "data.split=val", f"data.num_samples={args.samples}", f"protocol.joints={args.joints}",
            f"protocol.keyframe_counts={counts}", f"protocol.fractions={fractions}",
            f"generator.sampler.steps={args.steps}", f"run.seed={args.seed}", "run.threads=1",
-           f"output={out}"] + overrides
+           f"output={out}"] + args.common + overrides
     r = subprocess.run(cmd, capture_output=True, text=True)
     text = r.stdout + r.stderr
     if r.returncode != 0:
