@@ -188,7 +188,7 @@ void load_text_clip_encoder(const TextClipRun& run, torch::nn::Module& enc, cons
     torch::serialize::InputArchive ar, text_ar;
     ar.load_from(final_pt.string());
     ar.read("text", text_ar);
-    enc.load(text_ar);
+    read_module_weights(text_ar, enc);
   } catch (const c10::Error& e) {
     fail("{}: cannot read the text encoder from '{}' ({})", what, final_pt.string(),
          std::string(e.what_without_backtrace()).substr(0, 200));

@@ -95,7 +95,7 @@ void TrainedRun::load_weights_from(const std::filesystem::path& file, torch::nn:
   try {
     torch::serialize::InputArchive ar;
     ar.load_from(file.string());
-    module.load(ar);
+    read_module_weights(ar, module);
     return;
   } catch (const c10::Error& e) {
     detail = e.what_without_backtrace();
@@ -104,6 +104,105 @@ void TrainedRun::load_weights_from(const std::filesystem::path& file, torch::nn:
   }
   fail("{} checkpoint '{}' is unreadable or does not match {} ({})", what, file.string(), mismatch,
        detail.substr(0, 200));
+}
+
+namespace {
+
+// Every parameter and buffer of `module` and its submodules.
+std::vector<torch::Tensor> weight_tensors(torch::nn::Module& module) {
+  std::vector<torch::Tensor> out = module.parameters(/*recurse=*/true);
+  for (auto& b : module.buffers(/*recurse=*/true)) out.push_back(b);
+  return out;
+}
+
+}  // namespace
+
+torch::ScalarType weights_dtype(const std::string& name) {
+  if (name == "float32") return torch::kFloat32;
+  if (name == "float16") return torch::kFloat16;
+  fail("run.final_weights.dtype '{}' is not float32 or float16", name);
+}
+
+void read_module_weights(torch::serialize::InputArchive& ar, torch::nn::Module& module) {
+  // Module::load's own loop (parameters, then buffers, then each serializable child's
+  // archive), with one difference: a stored tensor of another floating dtype is
+  // converted to the module tensor's dtype first. Module::load would set_ a float32
+  // tensor onto float16 storage (a corrupt view), not convert it.
+  torch::NoGradGuard ng;
+  auto take = [](torch::Tensor& t, torch::Tensor stored) {
+    if (stored.scalar_type() != t.scalar_type() && at::isFloatingType(stored.scalar_type()) &&
+        at::isFloatingType(t.scalar_type()))
+      stored = stored.to(t.scalar_type());
+    if (t.device() != stored.device())
+      t.set_data(stored);
+    else
+      t.set_(stored);
+  };
+  for (auto& item : module.named_parameters(/*recurse=*/false)) {
+    torch::Tensor stored;
+    ar.read(item.key(), stored);
+    take(item.value(), stored);
+  }
+  for (auto& item : module.named_buffers(/*recurse=*/false)) {
+    torch::Tensor stored;
+    ar.read(item.key(), stored, /*is_buffer=*/true);
+    take(item.value(), stored);
+  }
+  for (auto& child : module.named_children()) {
+    if (!child.value()->is_serializable()) continue;
+    torch::serialize::InputArchive child_ar;
+    ar.read(child.key(), child_ar);
+    read_module_weights(child_ar, *child.value());
+  }
+}
+
+void round_module_weights(torch::nn::Module& module, torch::ScalarType dtype, const std::string& what) {
+  if (dtype == torch::kFloat32) return;
+  torch::NoGradGuard ng;
+  for (const auto& item : module.named_parameters(/*recurse=*/true)) {
+    torch::Tensor t = item.value();
+    if (t.scalar_type() != torch::kFloat32) continue;
+    torch::Tensor r = t.detach().to(dtype);
+    if (!torch::isfinite(r).all().item<bool>())
+      fail("{}: the weight '{}' (largest |w| {:.6g}) does not fit in {}; train with run.final_weights.dtype=float32",
+           what, item.key(), t.detach().abs().max().item<double>(), c10::toString(dtype));
+    t.copy_(r);
+  }
+  for (const auto& item : module.named_buffers(/*recurse=*/true)) {
+    torch::Tensor t = item.value();
+    if (t.scalar_type() != torch::kFloat32) continue;
+    torch::Tensor r = t.detach().to(dtype);
+    if (!torch::isfinite(r).all().item<bool>())
+      fail("{}: the buffer '{}' (largest |x| {:.6g}) does not fit in {}; train with run.final_weights.dtype=float32",
+           what, item.key(), t.detach().abs().max().item<double>(), c10::toString(dtype));
+    t.copy_(r);
+  }
+}
+
+void save_module_weights(torch::nn::Module& module, torch::ScalarType dtype, const std::filesystem::path& file) {
+  torch::NoGradGuard ng;
+  // Each lowered tensor with its own float32 data, put back after the save.
+  std::vector<std::pair<torch::Tensor, torch::Tensor>> lowered;
+  auto restore = [&] {
+    for (auto& [t, data] : lowered) t.set_data(data);
+  };
+  if (dtype != torch::kFloat32)
+    for (auto& t : weight_tensors(module))
+      if (t.scalar_type() == torch::kFloat32) {
+        lowered.emplace_back(t, t.detach());
+        t.set_data(t.detach().to(dtype));
+      }
+  // The archive holds the tensors themselves, not copies: it is written before
+  // they get their float32 data back.
+  try {
+    torch::serialize::OutputArchive ar;
+    module.save(ar);
+    ar.save_to(file.string());
+  } catch (...) {
+    restore();
+    throw;
+  }
+  restore();
 }
 
 }  // namespace mc

@@ -56,6 +56,20 @@ struct TrainedRun {
                          const std::string& mismatch = "its config.yaml") const;
 };
 
+// Module weights in a checkpoint stored at a lower precision (run.final_weights.dtype
+// float16). `read_module_weights` loads an archive into `module` and gives every
+// parameter and buffer back the dtype it had before (libtorch's Module::load takes
+// the stored tensor's dtype), so a half-precision final.pt loads as float32 holding
+// the rounded values exactly. `round_module_weights` rounds the module's float32
+// parameters and buffers in place to values `dtype` represents; UserError when one
+// does not fit (|w| beyond float16's range). `save_module_weights` writes the module
+// with those tensors stored as `dtype` (the module is unchanged).
+void read_module_weights(torch::serialize::InputArchive& ar, torch::nn::Module& module);
+void round_module_weights(torch::nn::Module& module, torch::ScalarType dtype, const std::string& what);
+void save_module_weights(torch::nn::Module& module, torch::ScalarType dtype, const std::filesystem::path& file);
+// "float32" -> kFloat, "float16" -> kHalf (run.final_weights.dtype).
+torch::ScalarType weights_dtype(const std::string& name);
+
 // UserError naming the directory, the missing file or the foreign model type.
 TrainedRun open_trained_run(const std::string& run_dir, const TrainedRunSpec& spec);
 

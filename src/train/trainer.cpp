@@ -22,6 +22,7 @@
 #include "core/atomic_file.h"
 #include "core/error.h"
 #include "core/interrupt.h"
+#include "models/trained_run.h"
 #include "train/dependencies.h"
 #include "train/dependency_record.h"
 #include "train/distributed.h"
@@ -745,6 +746,10 @@ TrainResult train(TrainJobConfig& job, const std::vector<std::string>& overrides
     torch::NoGradGuard ng;
     for (size_t i = 0; i < ema.size(); ++i) params[i].copy_(ema[i]);
   }
+  // run.final_weights.dtype: the weights are rounded before they are evaluated, so
+  // the summary describes exactly the weights final.pt stores.
+  const torch::ScalarType final_dtype = weights_dtype(job.run.final_weights.dtype);
+  round_module_weights(trainable->module(), final_dtype, run.path().string());
   trainable->module().eval();
   std::map<std::string, double> summary = trainable->evaluate();
   summary["steps"] = static_cast<double>(st.step);
@@ -755,10 +760,8 @@ TrainResult train(TrainJobConfig& job, const std::vector<std::string>& overrides
     if (!std::isfinite(v)) diverged(fmt::format("the final weights give {} = {}", k, v));
   if (saved_step != st.step) write_checkpoint_file(last, final_state);
   {
-    torch::serialize::OutputArchive ar;
-    trainable->module().save(ar);
     AtomicOutput out(run.checkpoints() / "final.pt");
-    ar.save_to(out.tmp_path().string());
+    save_module_weights(trainable->module(), final_dtype, out.tmp_path());
     out.commit();
   }
   trainable->save_artifacts(run.outputs());

@@ -244,3 +244,54 @@ TEST_CASE("snapshots hold the weights of each step without changing the run", "[
   CHECK(all_equal);
   CHECK(some_differ);
 }
+
+TEST_CASE("float16 final weights are the float32 run's weights rounded and stored as half and loaded as float32", "[train]") {
+  TempDir t("half");
+  std::string data = (t.path / "fx.h5").string();
+  REQUIRE(run_motionctl(fmt::format("fixture configs/data/smoke.yaml output={} fixture.num_clips=40", data)).exit_code ==
+          0);
+  auto train_run = [&](const std::string& name, const std::string& extra) {
+    auto r = run_motionctl(fmt::format(
+        "train configs/prior/flow_tiny.yaml data.path={} optim.steps=20 optim.warmup=5 run.log_every=10 "
+        "run.checkpoint_every=10 run.root={} run.name={} run.seed=3 run.threads=1 {}",
+        data, t.path.string(), name, extra));
+    REQUIRE(r.exit_code == 0);
+    return t.path / "prior" / name;
+  };
+  const fs::path full = train_run("full", ""), half = train_run("half", "run.final_weights.dtype=float16");
+  // The switch is part of the run's identity only when on: float32 dumps as before.
+  CHECK(slurp(full / "config.yaml").find("final_weights") == std::string::npos);
+  CHECK(slurp(half / "config.yaml").find("dtype: \"float16\"") != std::string::npos);
+  auto a = archive_tensors(full / "checkpoints/final.pt"), b = archive_tensors(half / "checkpoints/final.pt");
+  REQUIRE(!a.empty());
+  REQUIRE(a.size() == b.size());
+  int halves = 0;
+  for (auto& [k, v] : a) {
+    INFO(k);
+    REQUIRE(b.count(k) == 1);
+    if (v.scalar_type() == torch::kFloat32) {
+      CHECK(b[k].scalar_type() == torch::kFloat16);
+      // Same training (seed, one thread), then rounding: exactly float32 -> float16.
+      CHECK(torch::equal(b[k], v.to(torch::kFloat16)));
+      ++halves;
+    } else {
+      CHECK(torch::equal(b[k], v));  // integer buffers stay as they are
+    }
+  }
+  CHECK(halves > 10);
+  CHECK(fs::file_size(half / "checkpoints/final.pt") < 0.6 * fs::file_size(full / "checkpoints/final.pt"));
+  // Consumers load it back as float32 and sample from it.
+  const std::string out = (t.path / "s.h5").string();
+  auto s = run_motionctl(fmt::format("sample configs/sample/t2m_smoke.yaml prior.run_dir={} texts.from_split= "
+                                     "'texts.prompts=[walk]' texts.length=20 sampler.steps=2 output={} run.threads=1",
+                                     half.string(), out));
+  INFO(s.output);
+  CHECK(s.exit_code == 0);
+  CHECK(fs::exists(out));
+  // A bad value is named.
+  auto bad = run_motionctl(fmt::format("train configs/prior/flow_tiny.yaml data.path={} run.root={} "
+                                       "run.final_weights.dtype=bfloat16",
+                                       data, t.path.string()));
+  CHECK(bad.exit_code == 2);
+  CHECK(bad.output.find("run.final_weights.dtype") != std::string::npos);
+}
