@@ -159,24 +159,19 @@ void read_module_weights(torch::serialize::InputArchive& ar, torch::nn::Module& 
 void round_module_weights(torch::nn::Module& module, torch::ScalarType dtype, const std::string& what) {
   if (dtype == torch::kFloat32) return;
   torch::NoGradGuard ng;
-  for (const auto& item : module.named_parameters(/*recurse=*/true)) {
-    torch::Tensor t = item.value();
-    if (t.scalar_type() != torch::kFloat32) continue;
-    torch::Tensor r = t.detach().to(dtype);
-    if (!torch::isfinite(r).all().item<bool>())
-      fail("{}: the weight '{}' (largest |w| {:.6g}) does not fit in {}; train with run.final_weights.dtype=float32",
-           what, item.key(), t.detach().abs().max().item<double>(), c10::toString(dtype));
-    t.copy_(r);
-  }
-  for (const auto& item : module.named_buffers(/*recurse=*/true)) {
-    torch::Tensor t = item.value();
-    if (t.scalar_type() != torch::kFloat32) continue;
-    torch::Tensor r = t.detach().to(dtype);
-    if (!torch::isfinite(r).all().item<bool>())
-      fail("{}: the buffer '{}' (largest |x| {:.6g}) does not fit in {}; train with run.final_weights.dtype=float32",
-           what, item.key(), t.detach().abs().max().item<double>(), c10::toString(dtype));
-    t.copy_(r);
-  }
+  auto round = [&](const torch::OrderedDict<std::string, torch::Tensor>& tensors, const char* kind) {
+    for (const auto& item : tensors) {
+      torch::Tensor t = item.value();
+      if (t.scalar_type() != torch::kFloat32) continue;
+      torch::Tensor r = t.detach().to(dtype);
+      if (!torch::isfinite(r).all().item<bool>())
+        fail("{}: the {} '{}' (largest |x| {:.6g}) does not fit in {}; train with run.final_weights.dtype=float32",
+             what, kind, item.key(), t.detach().abs().max().item<double>(), c10::toString(dtype));
+      t.copy_(r);
+    }
+  };
+  round(module.named_parameters(/*recurse=*/true), "weight");
+  round(module.named_buffers(/*recurse=*/true), "buffer");
 }
 
 void save_module_weights(torch::nn::Module& module, torch::ScalarType dtype, const std::filesystem::path& file) {
