@@ -106,17 +106,6 @@ void TrainedRun::load_weights_from(const std::filesystem::path& file, torch::nn:
        detail.substr(0, 200));
 }
 
-namespace {
-
-// Every parameter and buffer of `module` and its submodules.
-std::vector<torch::Tensor> weight_tensors(torch::nn::Module& module) {
-  std::vector<torch::Tensor> out = module.parameters(/*recurse=*/true);
-  for (auto& b : module.buffers(/*recurse=*/true)) out.push_back(b);
-  return out;
-}
-
-}  // namespace
-
 torch::ScalarType weights_dtype(const std::string& name) {
   if (name == "float32") return torch::kFloat32;
   if (name == "float16") return torch::kFloat16;
@@ -159,30 +148,26 @@ void read_module_weights(torch::serialize::InputArchive& ar, torch::nn::Module& 
 void round_module_weights(torch::nn::Module& module, torch::ScalarType dtype, const std::string& what) {
   if (dtype == torch::kFloat32) return;
   torch::NoGradGuard ng;
-  auto round = [&](const torch::OrderedDict<std::string, torch::Tensor>& tensors, const char* kind) {
-    for (const auto& item : tensors) {
-      torch::Tensor t = item.value();
-      if (t.scalar_type() != torch::kFloat32) continue;
-      torch::Tensor r = t.detach().to(dtype);
-      if (!torch::isfinite(r).all().item<bool>())
-        fail("{}: the {} '{}' (largest |x| {:.6g}) does not fit in {}; train with run.final_weights.dtype=float32",
-             what, kind, item.key(), t.detach().abs().max().item<double>(), c10::toString(dtype));
-      t.copy_(r);
-    }
-  };
-  round(module.named_parameters(/*recurse=*/true), "weight");
-  round(module.named_buffers(/*recurse=*/true), "buffer");
+  for (const auto& item : module.named_parameters(/*recurse=*/true)) {
+    torch::Tensor t = item.value();
+    if (t.scalar_type() != torch::kFloat32) continue;
+    torch::Tensor r = t.detach().to(dtype);
+    if (!torch::isfinite(r).all().item<bool>())
+      fail("{}: the weight '{}' (largest |w| {:.6g}) does not fit in {}; train with run.final_weights.dtype=float32",
+           what, item.key(), t.detach().abs().max().item<double>(), c10::toString(dtype));
+    t.copy_(r);
+  }
 }
 
 void save_module_weights(torch::nn::Module& module, torch::ScalarType dtype, const std::filesystem::path& file) {
   torch::NoGradGuard ng;
-  // Each lowered tensor with its own float32 data, put back after the save.
+  // Each lowered parameter with its own float32 data, put back after the save.
   std::vector<std::pair<torch::Tensor, torch::Tensor>> lowered;
   auto restore = [&] {
     for (auto& [t, data] : lowered) t.set_data(data);
   };
   if (dtype != torch::kFloat32)
-    for (auto& t : weight_tensors(module))
+    for (auto& t : module.parameters(/*recurse=*/true))
       if (t.scalar_type() == torch::kFloat32) {
         lowered.emplace_back(t, t.detach());
         t.set_data(t.detach().to(dtype));

@@ -57,13 +57,16 @@ struct TrainedRun {
 };
 
 // Module weights in a checkpoint stored at a lower precision (run.final_weights.dtype
-// float16). `read_module_weights` loads an archive into `module` and gives every
-// parameter and buffer back the dtype it had before (libtorch's Module::load takes
-// the stored tensor's dtype), so a half-precision final.pt loads as float32 holding
+// float16). Only parameters are lowered: buffers (normaliser statistics, a TMD's
+// distance table checked against its tokenizer, counters) are data the run derived,
+// not weights it learned, and stay as they are. `read_module_weights` loads an
+// archive into `module` as Module::load does, converting a stored tensor of another
+// floating dtype to the module tensor's (libtorch's Module::load would set_ a float32
+// tensor onto float16 storage), so a half-precision final.pt loads as float32 holding
 // the rounded values exactly. `round_module_weights` rounds the module's float32
-// parameters and buffers in place to values `dtype` represents; UserError when one
-// does not fit (|w| beyond float16's range). `save_module_weights` writes the module
-// with those tensors stored as `dtype` (the module is unchanged).
+// parameters in place to values `dtype` represents; UserError when one does not fit
+// (|w| beyond float16's range). `save_module_weights` writes the module with its
+// float32 parameters stored as `dtype` (the module is unchanged).
 void read_module_weights(torch::serialize::InputArchive& ar, torch::nn::Module& module);
 void round_module_weights(torch::nn::Module& module, torch::ScalarType dtype, const std::string& what);
 void save_module_weights(torch::nn::Module& module, torch::ScalarType dtype, const std::filesystem::path& file);
