@@ -19,16 +19,17 @@ namespace fs = std::filesystem;
 
 // How checkpoints/final.pt stores the weights (run.final_weights). float16 halves
 // the file (the repo ships no checkpoint over 5 MiB) at no cost to what the run
-// means: the trainer rounds the final weights to half precision *before* it
-// evaluates and saves them, so the run's summary, its health and every consumer
-// (which loads them back as float32) see the same rounded weights. Off (float32)
+// means: the trainer rounds the final parameters to half precision *before* it
+// evaluates and saves them (buffers, such as normaliser statistics and a TMD's
+// distance table, stay float32), so the run's summary, its health and every
+// consumer (which loads them back as float32) see the same weights. Off (float32)
 // it is left out of dumps and hashes, so runs trained before it keep their names.
 struct FinalWeightsConfig : Config {
   std::string dtype = "float32";
   void visit(FieldVisitor& v) override {
     v("dtype", dtype,
-      "float32, or float16: round the final weights to half precision at the end of training, then evaluate and "
-      "store them so (half the file; loaded back as float32)",
+      "float32, or float16: round the final parameters (not buffers) to half precision at the end of training, "
+      "then evaluate and store them so (half the file; loaded back as float32)",
       one_of({"float32", "float16"}));
   }
   bool omitted_from_dump() const override { return dtype == "float32"; }
