@@ -39,7 +39,10 @@ struct FlowControlNetConfig : Config {
   PriorSourceConfig base;  // the finished flow prior it controls (frozen)
   std::vector<int> control_joints = {0, 10, 11, 15, 20, 21};
   double control_loss_weight = 1.0;  // weight of the L2 on controlled entries of the clean estimate
-  std::string control_loss_weighting = "none";  // none: ||x0 + v - x1||^2 (ACMDM); one_minus_t_sq: (1-t)^2 times it
+  // none: ||x0 + v - x1||^2 (ACMDM); one_minus_t_sq: (1-t)^2 times it, which on a clean-endpoint base is the
+  // clean error x1_hat - x1 itself (the standard ControlNets: the velocity error's 1/(1-t) weight left the
+  // branch almost no supervision where the signal matters, docs/choices.md)
+  std::string control_loss_weighting = "none";
   double cond_drop = 0.1;            // text dropout (the copy sees the null text at CFG's unconditional side)
   double control_drop = 0.1;         // control dropout: teaches the branch the "no control" pass of the CFG
   int min_controlled_frames = 1;     // controlled frames per sample: log-uniform in [this, clip length]
@@ -54,7 +57,8 @@ struct FlowControlNetConfig : Config {
     v("control_loss_weighting", control_loss_weighting,
       "clean estimate of the control loss: none = x0 + v with the training noise x0 (ACMDM; the error is "
       "v - (x1 - x0), equally weighted at every t), one_minus_t_sq = x_t + (1 - t) v (the error is (1 - t) times "
-      "that, so the loss vanishes near t = 1)",
+      "that: on a clean-endpoint base the clean error x1_hat - x1, every t alike; on a velocity base it vanishes "
+      "near t = 1)",
       one_of({"none", "one_minus_t_sq"}));
     v("cond_drop", cond_drop, "probability of replacing the text by the base's null text", in_range(0.0, 1.0));
     v("control_drop", control_drop,
