@@ -267,7 +267,8 @@ TEST_CASE("motionctl reproduce: reduced smoke replay of the AnchorRoute and cros
   const fs::path out = dir.path / "results" / "ci_ar";
   std::map<std::string, std::map<std::string, double>> means;  // table:row -> metric -> mean
   std::vector<std::string> tables = {"anchorroute/table1", "anchorroute/table2", "anchorroute/table3",
-                                     "anchorroute/table4", "anchorroute/table4_recipe", "anchorroute/table5",
+                                     "anchorroute/table4", "anchorroute/table4_explore", "anchorroute/table4_recipe",
+                                     "anchorroute/table5",
                                      "anchorroute/table6",
                                      "anchorroute/table7", "cross/benchmark"};
   for (const auto& t : tables) {
@@ -300,6 +301,13 @@ TEST_CASE("motionctl reproduce: reduced smoke replay of the AnchorRoute and cros
   CHECK(kv > 0);
   CHECK(means["anchorroute/table4:controlnet_adapter"]["params"] > kv);
   CHECK(means["anchorroute/table4:anchorkv/no_dual_context_no_anchor_loss"]["params"] < kv);
+  // Table IV's exploratory rows (their own table since 2026-12-07): the feedback and
+  // rollout adapters trained, every row's control error measured.
+  for (std::string row : {"tmd/no_adapter", "anchorkv", "anchorkv/rollout_anchor", "anchorkv/feedback",
+                          "anchorkv/rollout_anchor_4500", "anchorkv/text_slots"}) {
+    INFO(row);
+    CHECK(means["anchorroute/table4_explore:" + row].count("control_error"));
+  }
   // Table IV under one recipe: every path trained (feedback channels and rollout states),
   // the ControlNet adapter still the largest, every row's control error measured.
   const double kv_recipe = means["anchorroute/table4_recipe:anchorkv"]["params"];
