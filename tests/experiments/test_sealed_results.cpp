@@ -4,7 +4,7 @@
 // the seal block, or a truncation, is refused naming the file and what to do; a damaged
 // row cache is a cache miss (read_cached_row_records) rather than a failed row; files
 // written before seals (the user block zeroed, or none at all: the committed
-// results/standard/results.h5) are still read, under crash isolation.
+// results/archive/standard_2026-11-28/results.h5) are still read, under crash isolation.
 #include <catch2/catch.hpp>
 
 #include <H5Cpp.h>
@@ -249,9 +249,10 @@ TEST_CASE("results.h5 is sealed: kept tables round-trip, a changed byte is exit 
   drop_seal(merged);
   CHECK(read_results_h5(merged.string()).find("t/b")->rows.at(0).values.at("fid") == std::vector<double>{2.5, 3.5});
 
-  // The committed results/standard/results.h5 (written with no user block at all, before
-  // claims were stored in it): all 11 tables with their rows.
-  const fs::path committed = fs::path(MOTIONCTL_SOURCE_DIR) / "results" / "standard" / "results.h5";
+  // The committed results/archive/standard_2026-11-28/results.h5 (written with no user block
+  // at all, before claims were stored in it): all 11 tables with their rows.
+  const fs::path committed =
+      fs::path(MOTIONCTL_SOURCE_DIR) / "results" / "archive" / "standard_2026-11-28" / "results.h5";
   REQUIRE(fs::exists(committed));
   StoredResults old = read_results_h5(committed.string());
   CHECK(old.tables.size() >= 10);
