@@ -5,6 +5,7 @@
 // components it used still have the weights it recorded (experiments/row_record.h).
 #include <yaml-cpp/yaml.h>
 
+#include <algorithm>
 #include <chrono>
 #include <filesystem>
 #include <iostream>
@@ -492,6 +493,37 @@ void write_examples(const std::string& path, const MotionSet& gen, const std::ve
   out.commit();
 }
 
+// The directory a row's numbers are cached in. A row's directory is named
+// `<row id>-<hash of its key>`, and the key (generator, protocol, data and evaluator
+// content, weights, seeds) holds everything the numbers depend on, but not the row id.
+// So a row whose own directory is not finished reuses a finished one with the same
+// hash and the same config.yaml under another id (the same row shared by two tables
+// under two ids, or a renamed row): the same computation is not run twice. The first
+// such directory by name, so the choice does not depend on the file system's order.
+static std::string content_twin(const RunConfig& rc, const std::string& own_name, const std::string& hash,
+                                const std::string& yaml) {
+  const fs::path own = RunDir::path_of(rc, own_name);
+  if (fs::exists(own / "DONE")) return own_name;
+  const std::string suffix = "-" + hash;
+  std::vector<std::string> twins;
+  std::error_code ec;
+  for (fs::directory_iterator it(own.parent_path(), ec), end; !ec && it != end; it.increment(ec)) {
+    const std::string name = it->path().filename().string();
+    if (name == own_name || name.size() <= suffix.size() ||
+        name.compare(name.size() - suffix.size(), suffix.size(), suffix) != 0)
+      continue;
+    if (!fs::exists(it->path() / "DONE") || !fs::exists(it->path() / "config.yaml")) continue;
+    try {
+      if (read_file(it->path() / "config.yaml") == yaml) twins.push_back(name);
+    } catch (const UserError&) {
+      // unreadable: not a twin; its own row recomputes or reports it
+    }
+  }
+  if (twins.empty()) return own_name;
+  std::sort(twins.begin(), twins.end());
+  return twins.front();
+}
+
 RowResult run_row(const ProfileFile& pf, const TableSpec& table, const RowConfig& row, RowEvaluator& ev) {
   const ProfileConfig& profile = pf.profile;
   RowResult result;
@@ -526,8 +558,12 @@ RowResult run_row(const ProfileFile& pf, const TableSpec& table, const RowConfig
   rc.threads = profile.threads;
   rc.device = profile.device;
   std::string yaml = dump_config(key);
-  const std::string run_name = sanitize_name(row.id) + "-" + config_hash(key);
+  const std::string own_name = sanitize_name(row.id) + "-" + config_hash(key);
+  const std::string run_name = content_twin(rc, own_name, config_hash(key), yaml);
   RunDir run = RunDir::open(rc, yaml, {}, run_name);
+  if (run_name != own_name)
+    run.log().info(fmt::format("row {}: the same computation as this row (same key, {}); reused under its name",
+                               row.id, config_hash(key)));
   result.run_dir = run.path().string();
   const ResolvedDependency evaluator = evaluator_component(ev.evaluator_run(), profile.evaluator);
   const std::string record_note =

@@ -4,7 +4,8 @@
 // dropped or swapped for another run), the legacy rule (make's rule on DONE times),
 // and `motionctl reproduce` end to end: a second replay reuses the row, a component's
 // final.pt rewritten in place recomputes it, a legacy row is adopted when its
-// components are older and recomputed when one is newer.
+// components are older and recomputed when one is newer, and the same row under another
+// id reuses the finished directory of its key.
 #include <catch2/catch.hpp>
 
 #include <yaml-cpp/yaml.h>
@@ -364,4 +365,21 @@ TEST_CASE("reproduce: a cached row is reused while its components keep their wei
   CHECK_FALSE(std::regex_search(out, cached_line));
   CHECK_THAT(out, Catch::Contains("cache cannot be used") && Catch::Contains("samples.h5"));
   CHECK(fs::exists(row / "samples.h5"));
+
+  // (e) The same row under another id (renamed, or shared by two tables) is the same
+  // computation: reused from the finished directory of the same key, none made for it.
+  const std::string fid_row = summary_line(row, "fid");
+  std::ofstream(dir.path / "specs" / "t" / "a.yaml")
+      << "table:\n  id: t/a\n  title: \"rows keyed by weights\"\n"
+      << "  protocol: experiments/protocols/anchors_root_3d.yaml\n"
+      << "  columns: [control_error, fid]\nrows:\n"
+      << "  - {id: renamed, label: Imputation, generator: experiments/generators/imputation.yaml}\n";
+  out = replay();
+  CHECK(std::regex_search(out, std::regex(R"(renamed\s+\(cached\))")));
+  bool made = false;
+  for (const auto& e : fs::recursive_directory_iterator(dir.path / "runs"))
+    if (e.is_directory() && e.path().filename().string().rfind("renamed-", 0) == 0) made = true;
+  CHECK_FALSE(made);
+  CHECK(summary_line(row, "fid") == fid_row);
+  CHECK(slurp(row / "log.txt").find("row renamed: the same computation") != std::string::npos);
 }
